@@ -1,0 +1,83 @@
+"""jaxlift: a differentiable digital twin of the hydraulic lift of an automated forklift.
+
+The public surface. Enable float64 at the start of your program::
+
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jaxlift as jl
+
+    log = jl.read_log("data/run_500kg.csv")
+    sol = jl.simulate(jl.Plant(), jl.make_effects("hose_compliance"), jl.Inputs.from_log(log))
+"""
+
+from ._effects import EFFECTS, AbstractEffect, Signals
+from ._effects.entrained_air import EntrainedAir
+from ._effects.hose_compliance import HoseCompliance
+from ._effects.input_delay import InputDelay
+from ._effects.leakage import Leakage
+from ._effects.mast_compliance import MastCompliance
+from ._effects.motor_droop import MotorDroop
+from ._effects.motor_inertia import MotorInertia
+from ._effects.stick_slip import StickSlip
+from ._log import Log, LogError, UnusedColumnsWarning, read_log, write_log
+from ._measurement import MeasurementModel, measure, to_log
+from ._model import all_param_infos, load_model, model_params, with_params
+from ._params import (
+    ParameterError,
+    ParamInfo,
+    from_unconstrained,
+    get_params,
+    load_params_json,
+    param,
+    param_infos,
+    replace_params,
+    save_params_json,
+    to_unconstrained,
+)
+from ._plant import Plant
+from ._simulate import Inputs, SimulationError, Solution, initial_height, make_effects, simulate
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "EFFECTS",
+    "AbstractEffect",
+    "EntrainedAir",
+    "HoseCompliance",
+    "InputDelay",
+    "Inputs",
+    "Leakage",
+    "Log",
+    "LogError",
+    "MastCompliance",
+    "MeasurementModel",
+    "MotorDroop",
+    "MotorInertia",
+    "ParamInfo",
+    "ParameterError",
+    "Plant",
+    "Signals",
+    "SimulationError",
+    "Solution",
+    "StickSlip",
+    "UnusedColumnsWarning",
+    "all_param_infos",
+    "from_unconstrained",
+    "get_params",
+    "initial_height",
+    "load_model",
+    "load_params_json",
+    "make_effects",
+    "measure",
+    "model_params",
+    "param",
+    "param_infos",
+    "read_log",
+    "replace_params",
+    "save_params_json",
+    "simulate",
+    "to_log",
+    "to_unconstrained",
+    "with_params",
+    "write_log",
+]

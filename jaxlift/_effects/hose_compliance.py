@@ -1,0 +1,31 @@
+"""``hose_compliance``: hoses and seals stretch with pressure (thesis 3.2).
+
+``C = V / beta + C_h``: a compliance that does not grow with height, so the
+hydraulic frequency varies less with height. Nesting value ``C_h = 0``.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import jax.numpy as jnp
+
+from .._params import param
+from ._base import AbstractEffect, Scalar, Signals
+
+
+class HoseCompliance(AbstractEffect):
+    """Constant extra hydraulic capacitance."""
+
+    C_h: Scalar = param(0.0, "m^3/Pa", 0.0, 1e-9, "hose and seal compliance", nesting=0.0)
+
+    name: ClassVar[str] = "hose_compliance"
+    state_names: ClassVar[tuple[str, ...]] = ()
+    state_scales: ClassVar[tuple[float, ...]] = ()
+    overrides_acceleration: ClassVar[bool] = False
+
+    def initial_state(self, plant, sig):
+        return jnp.zeros((0,))
+
+    def extra_capacitance(self, plant, z, sig: Signals, volume):
+        return self.C_h

@@ -1,0 +1,33 @@
+"""``leakage``: internal leakage past piston seals and pump (thesis 4.1.3).
+
+The numerator of ``dp/dt`` gains ``-C_L p``: the fork sinks while the valve is
+closed. Nesting value ``C_L = 0``.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import jax.numpy as jnp
+
+from .._params import param
+from ._base import AbstractEffect, Scalar, Signals
+
+
+class Leakage(AbstractEffect):
+    """Laminar leakage flow proportional to pressure."""
+
+    C_L: Scalar = param(
+        0.0, "m^3/(s Pa)", 0.0, 1e-9, "laminar leakage coefficient", nesting=0.0
+    )
+
+    name: ClassVar[str] = "leakage"
+    state_names: ClassVar[tuple[str, ...]] = ()
+    state_scales: ClassVar[tuple[float, ...]] = ()
+    overrides_acceleration: ClassVar[bool] = False
+
+    def initial_state(self, plant, sig):
+        return jnp.zeros((0,))
+
+    def extra_flow(self, plant, z, sig: Signals):
+        return -self.C_L * sig.p

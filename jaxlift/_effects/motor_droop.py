@@ -1,0 +1,33 @@
+"""``motor_droop``: a series-wound motor slows under load torque, which is
+proportional to pressure (thesis 2.2.2).
+
+``omega = max(k U + z - kappa p, 0)``. Nesting value ``kappa = 0``.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+from .._params import param
+from ._base import AbstractEffect, Scalar, Signals
+
+import jax.numpy as jnp
+
+
+class MotorDroop(AbstractEffect):
+    """Motor speed falling linearly with line pressure."""
+
+    kappa: Scalar = param(
+        0.0, "rad/(s Pa)", 0.0, 1e-5, "motor speed droop per pressure", nesting=0.0
+    )
+
+    name: ClassVar[str] = "motor_droop"
+    state_names: ClassVar[tuple[str, ...]] = ()
+    state_scales: ClassVar[tuple[float, ...]] = ()
+    overrides_acceleration: ClassVar[bool] = False
+
+    def initial_state(self, plant, sig):
+        return jnp.zeros((0,))
+
+    def motor_offset(self, plant, z, sig: Signals):
+        return -self.kappa * sig.p

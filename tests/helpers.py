@@ -1,0 +1,44 @@
+"""Test helpers: tree comparison and finite-difference gradient checks."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def tree_allclose(x, y, *, rtol=1e-7, atol=0.0) -> bool:
+    """True if two pytrees have the same structure and all array leaves are close."""
+    if jax.tree_util.tree_structure(eqx.filter(x, eqx.is_array)) != jax.tree_util.tree_structure(
+        eqx.filter(y, eqx.is_array)
+    ):
+        return False
+    xs = jax.tree_util.tree_leaves(eqx.filter(x, eqx.is_array))
+    ys = jax.tree_util.tree_leaves(eqx.filter(y, eqx.is_array))
+    return all(
+        a.shape == b.shape and bool(jnp.allclose(a, b, rtol=rtol, atol=atol))
+        for a, b in zip(xs, ys)
+    )
+
+
+def finite_difference_grad(f, x: np.ndarray, rel_step: float = 1e-6) -> np.ndarray:
+    """Central finite-difference gradient of a scalar function ``f`` of a 1-D array."""
+    x = np.asarray(x, dtype=np.float64)
+    g = np.zeros_like(x)
+    for i in range(x.size):
+        h = rel_step * max(abs(x[i]), 1e-3)
+        xp, xm = x.copy(), x.copy()
+        xp[i] += h
+        xm[i] -= h
+        g[i] = (float(f(xp)) - float(f(xm))) / (2 * h)
+    return g
+
+
+def assert_grad_matches_fd(f, x, *, rtol=1e-4, atol=0.0, rel_step=1e-6):
+    """Check ``jax.grad(f)(x)`` against central finite differences."""
+    x = np.asarray(x, dtype=np.float64)
+    g_ad = np.asarray(jax.grad(f)(jnp.asarray(x)))
+    g_fd = finite_difference_grad(f, x, rel_step=rel_step)
+    np.testing.assert_allclose(g_ad, g_fd, rtol=rtol, atol=atol)
+    return g_ad, g_fd
