@@ -40,7 +40,12 @@ def cmd_simulate(args) -> int:
     out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     data = np.column_stack(
-        [np.asarray(sol.ts), np.asarray(sol.height), np.asarray(sol.speed), np.asarray(sol.pressure)]
+        [
+            np.asarray(sol.ts),
+            np.asarray(sol.height),
+            np.asarray(sol.speed),
+            np.asarray(sol.pressure),
+        ]
     )
     np.savetxt(
         out,

@@ -54,6 +54,12 @@ class ParamInfo:
         description: what it is.
         nesting: for an effect parameter, the value at which the effect vanishes
             (``None`` for plant parameters).
+        scale: a typical physical magnitude (for effect parameters whose nominal is
+            the nesting value 0: where multi-start fits begin looking), in ``unit``.
+        transform: unconstrained coordinate for optimisers: ``"log"`` (``log(x - lower)``;
+            the upper bound is then only checked, not enforced), ``"logit"`` (scaled to
+            ``(lower, upper)``) or ``"identity"``. Default: ``"log"`` where ``lower`` is
+            finite and ``>= 0``, else ``"logit"`` where both bounds are finite.
     """
 
     name: str
@@ -63,8 +69,22 @@ class ParamInfo:
     upper: float
     description: str
     nesting: float | None = None
+    scale: float | None = None
+    transform: str = ""
 
     def __post_init__(self):
+        if not self.transform:
+            fin_lo, fin_hi = math.isfinite(self.lower), math.isfinite(self.upper)
+            t = (
+                "log"
+                if fin_lo and self.lower >= 0
+                else "logit"
+                if fin_lo and fin_hi
+                else "identity"
+            )
+            object.__setattr__(self, "transform", t)
+        if self.transform not in ("log", "logit", "identity"):
+            raise ParameterError(f"parameter {self.name!r}: unknown transform {self.transform!r}")
         if not self.lower <= self.nominal <= self.upper:
             raise ParameterError(
                 f"parameter {self.name!r}: nominal value {self.nominal} outside its bounds "
@@ -76,8 +96,7 @@ class ParamInfo:
         where = f"{source}: " if source else ""
         if not isinstance(value, (int, float)) or isinstance(value, bool):
             raise ParameterError(
-                f"{where}parameter {self.name!r}: expected a number in {self.unit}, "
-                f"got {value!r}"
+                f"{where}parameter {self.name!r}: expected a number in {self.unit}, got {value!r}"
             )
         if not math.isfinite(value):
             raise ParameterError(f"{where}parameter {self.name!r}: expected a finite number")
@@ -96,6 +115,8 @@ def param(
     description: str,
     *,
     nesting: float | None = None,
+    scale: float | None = None,
+    transform: str = "",
     name: str | None = None,
 ):
     """Declare a physical-parameter field of an ``eqx.Module``.
@@ -104,7 +125,8 @@ def param(
     to ``nominal``. ``name`` defaults to the field's attribute name.
     """
     info = dict(nominal=nominal, unit=unit, lower=lower, upper=upper)
-    info.update(description=description, nesting=nesting, name=name)
+    info.update(description=description, nesting=nesting, scale=scale, name=name)
+    info.update(transform=transform)
     return eqx.field(default=nominal, converter=_as_float64, metadata={"jaxlift_param": info})
 
 
@@ -129,6 +151,8 @@ def param_infos(module: eqx.Module | type) -> dict[str, ParamInfo]:
             upper=meta["upper"],
             description=meta["description"],
             nesting=meta["nesting"],
+            scale=meta["scale"],
+            transform=meta["transform"],
         )
     return out
 
@@ -171,16 +195,14 @@ def replace_params(module: eqx.Module, values: Mapping[str, ArrayLike]) -> eqx.M
 
 # ---------------------------------------------------------------- transforms
 def to_unconstrained(info: ParamInfo, value: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
-    """Map a physical value inside ``(lower, upper)`` to an unconstrained real."""
+    """Map a physical value to the unconstrained coordinate of ``info.transform``."""
     value = jnp.asarray(value, dtype=jnp.float64)
     lo, hi = info.lower, info.upper
-    if math.isfinite(lo) and math.isfinite(hi):
+    if info.transform == "logit":
         s = (value - lo) / (hi - lo)
         return jnp.log(s) - jnp.log1p(-s)
-    if math.isfinite(lo):
+    if info.transform == "log":
         return jnp.log(value - lo)
-    if math.isfinite(hi):
-        return -jnp.log(hi - value)
     return value
 
 
@@ -188,12 +210,10 @@ def from_unconstrained(info: ParamInfo, theta: Float[ArrayLike, "..."]) -> Float
     """Inverse of :func:`to_unconstrained`."""
     theta = jnp.asarray(theta, dtype=jnp.float64)
     lo, hi = info.lower, info.upper
-    if math.isfinite(lo) and math.isfinite(hi):
+    if info.transform == "logit":
         return lo + (hi - lo) * jax_sigmoid(theta)
-    if math.isfinite(lo):
+    if info.transform == "log":
         return lo + jnp.exp(theta)
-    if math.isfinite(hi):
-        return hi - jnp.exp(-theta)
     return theta
 
 
@@ -202,9 +222,7 @@ def jax_sigmoid(x):
 
 
 # ---------------------------------------------------------------- files
-def load_params_json(
-    path: str | os.PathLike, known: Mapping[str, ParamInfo]
-) -> dict[str, float]:
+def load_params_json(path: str | os.PathLike, known: Mapping[str, ParamInfo]) -> dict[str, float]:
     """Read a parameter file: a JSON object ``{name: value}`` with MODEL.md's names.
 
     Values are in the units of :class:`ParamInfo`; every name must be in ``known``

@@ -41,7 +41,7 @@ class Plant(eqx.Module):
     z2: Scalar = param(-3.5, "rad/s", -40.0, 20.0, "motor map offset, stage 2")
     z3: Scalar = param(-4.0, "rad/s", -40.0, 20.0, "motor map offset, stage 3")
     disp: Scalar = param(43e-6, "m^3/rev", 1e-7, 1e-3, "pump displacement")
-    eta_v: Scalar = param(0.95, "-", 0.3, 1.0, "pump volumetric efficiency")
+    eta_v: Scalar = param(0.95, "-", 0.3, 1.0, "pump volumetric efficiency", transform="logit")
     A1: Scalar = param(28.27e-4, "m^2", 1e-5, 0.1, "piston area, stage 1")
     A2: Scalar = param(22.68e-4, "m^2", 1e-5, 0.1, "piston area, stage 2 (both cylinders)")
     A3: Scalar = param(22.68e-4, "m^2", 1e-5, 0.1, "piston area, stage 3 (both cylinders)")

@@ -38,8 +38,10 @@ def ramped_sequence(
         mask = (ts >= t_start - 1e-9) & (ts < t_start + dur - 1e-9)
         if i == len(sections) - 1:
             mask |= ts >= t_start + dur - 1e-9
-        frac = np.ones(mask.sum()) if ramp_s <= 0 or i == 0 else np.clip(
-            (ts[mask] - t_start) / ramp_s, 0.0, 1.0
+        frac = (
+            np.ones(mask.sum())
+            if ramp_s <= 0 or i == 0
+            else np.clip((ts[mask] - t_start) / ramp_s, 0.0, 1.0)
         )
         values[mask] = prev + (level - prev) * frac
         t_start, prev = t_start + dur, level

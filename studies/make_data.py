@@ -58,9 +58,7 @@ def make(out_dir: pathlib.Path) -> list[pathlib.Path]:
         ts, pwm = ramped_sequence(sections, ramp_s=ramp, dt=0.01)
         inputs = jl.Inputs.from_arrays(ts, pwm, np.full_like(ts, load), x0)
         sol = jl.simulate(plant, effects, inputs, rtol=1e-8, atol=(1e-9, 1e-9, 1e-2))
-        log = jl.to_log(
-            sol, inputs, jl.MeasurementModel(), jax.random.key(seed), name=fname[:-4]
-        )
+        log = jl.to_log(sol, inputs, jl.MeasurementModel(), jax.random.key(seed), name=fname[:-4])
         path = out_dir / fname
         jl.write_log(path, log)
         written.append(path)

@@ -25,7 +25,7 @@ import math
 from collections.abc import Callable, Mapping
 
 import numpy as np
-from scipy.integrate import solve_ivp
+from scipy.integrate import odeint, solve_ivp
 
 __all__ = [
     "NOMINAL",
@@ -35,6 +35,8 @@ __all__ = [
     "initial_state",
     "simulate_scipy",
     "make_core",
+    "make_jacobian",
+    "static_pressure",
 ]
 
 G = 9.81  # m/s^2
@@ -262,7 +264,7 @@ def simulate_scipy(
     atol: tuple[float, float, float] | float = (1e-7, 1e-7, 1.0),
     use_jac: bool = True,
 ) -> dict[str, np.ndarray]:
-    """Simulate one test run with ``scipy.integrate.solve_ivp``.
+    """Simulate one test run with ``scipy.integrate.solve_ivp`` (or ``odeint``).
 
     The run is split into segments at every sample where ``pwm`` or ``load`` change;
     each segment is integrated with its constant input by a fresh ``solve_ivp`` call
@@ -273,7 +275,10 @@ def simulate_scipy(
             their nominal values; ``dFs``/``v_s`` and ``C_h`` switch the effects on).
         ts, pwm, load: sample times [s], duty cycle, load [kg] (zero-order hold).
         x0: initial height [m]; the fork starts at rest at static pressure.
-        method, rtol, atol: passed to ``solve_ivp``; ``atol`` per state (x, v, p).
+        method: a ``solve_ivp`` method (``"LSODA"``, ``"Radau"``, ``"RK45"``, ...), or
+            ``"odeint"`` for ODEPACK's LSODA through ``scipy.integrate.odeint`` (same
+            algorithm, less Python overhead per call).
+        rtol, atol: tolerances; ``atol`` per state (x, v, p).
         use_jac: give the analytic Jacobian to the implicit methods.
 
     Returns:
@@ -284,10 +289,11 @@ def simulate_scipy(
     pwm = np.asarray(pwm, dtype=np.float64)
     load = np.asarray(load, dtype=np.float64)
     n = ts.size
-    if not (pwm.shape == load.shape == ts.shape and n >= 2):
+    if not (pwm.shape == load.shape == ts.shape and ts.ndim == 1 and n >= 2):
         raise ValueError("ts, pwm and load must be 1-D arrays of the same length >= 2")
     deriv = make_core(params)
-    jac_core = make_jacobian(params) if use_jac and method in ("LSODA", "Radau", "BDF") else None
+    implicit = ("LSODA", "Radau", "BDF", "odeint")
+    jac_core = make_jacobian(params) if use_jac and method in implicit else None
     change = np.nonzero((np.diff(pwm) != 0) | (np.diff(load) != 0))[0] + 1
     bounds = [0, *change.tolist(), n - 1]
     if bounds[-2] == n - 1:  # a change at the last sample: nothing to integrate after it
@@ -312,22 +318,41 @@ def simulate_scipy(
                 x, v, p = yy.tolist()
                 return jac_core(x, v, p, u, m_load)
 
-        kwargs = {"jac": jac} if jac is not None else {}
-        sol = solve_ivp(
-            fun,
-            (ts_list[a], ts_list[b]),
-            y,
-            method=method,
-            t_eval=ts[a : b + 1],
-            rtol=rtol,
-            atol=atol_arr,
-            **kwargs,
-        )
-        if sol.status != 0:
-            raise RuntimeError(f"solve_ivp failed at t = {ts_list[a]:.3f} s: {sol.message}")
-        nfev += sol.nfev
-        ys[a + 1 : b + 1] = sol.y[:, 1:].T
-        y = sol.y[:, -1]
+        if method == "odeint":  # ODEPACK's LSODA driven directly (less Python per call)
+            seg, info = odeint(
+                fun,
+                y,
+                ts[a : b + 1],
+                Dfun=jac,
+                rtol=rtol,
+                atol=atol_arr,
+                tfirst=True,
+                full_output=True,
+                mxstep=100_000,
+                tcrit=ts[b : b + 1],  # never step past the segment's end
+            )
+            if info["message"] != "Integration successful.":
+                raise RuntimeError(f"odeint failed at t = {ts_list[a]:.3f} s: {info['message']}")
+            nfev += int(info["nfe"][-1])
+            ys[a + 1 : b + 1] = seg[1:]
+            y = seg[-1]
+        else:
+            kwargs = {"jac": jac} if jac is not None else {}
+            sol = solve_ivp(
+                fun,
+                (ts_list[a], ts_list[b]),
+                y,
+                method=method,
+                t_eval=ts[a : b + 1],
+                rtol=rtol,
+                atol=atol_arr,
+                **kwargs,
+            )
+            if sol.status != 0:
+                raise RuntimeError(f"solve_ivp failed at t = {ts_list[a]:.3f} s: {sol.message}")
+            nfev += sol.nfev
+            ys[a + 1 : b + 1] = sol.y[:, 1:].T
+            y = sol.y[:, -1]
         if not 0.0 - 0.01 <= y[0] <= X_MAX + 0.01:
             raise RuntimeError(
                 f"the fork left the mast's range at t = {ts_list[b]:.2f} s "

@@ -27,7 +27,7 @@ class EntrainedAir(AbstractEffect):
     """Compliance of undissolved air, falling with the square of pressure."""
 
     alpha0: Scalar = param(
-        0.0, "-", 0.0, 0.5, "gas volume per oil volume at p_atm", nesting=0.0
+        0.0, "-", 0.0, 0.5, "gas volume per oil volume at p_atm", nesting=0.0, scale=0.01
     )
 
     name: ClassVar[str] = "entrained_air"

@@ -17,7 +17,9 @@ from ._base import AbstractEffect, Scalar, Signals
 class HoseCompliance(AbstractEffect):
     """Constant extra hydraulic capacitance."""
 
-    C_h: Scalar = param(0.0, "m^3/Pa", 0.0, 1e-9, "hose and seal compliance", nesting=0.0)
+    C_h: Scalar = param(
+        0.0, "m^3/Pa", 0.0, 1e-9, "hose and seal compliance", nesting=0.0, scale=1e-12
+    )
 
     name: ClassVar[str] = "hose_compliance"
     state_names: ClassVar[tuple[str, ...]] = ()

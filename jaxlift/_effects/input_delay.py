@@ -21,7 +21,7 @@ from ._base import AbstractEffect, Scalar
 class InputDelay(AbstractEffect):
     """Pure time delay of the commanded duty cycle."""
 
-    tau_d: Scalar = param(0.0, "s", 0.0, 2.0, "input dead time", nesting=0.0)
+    tau_d: Scalar = param(0.0, "s", 0.0, 2.0, "input dead time", nesting=0.0, scale=0.05)
 
     name: ClassVar[str] = "input_delay"
     state_names: ClassVar[tuple[str, ...]] = ()

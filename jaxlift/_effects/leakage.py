@@ -18,7 +18,7 @@ class Leakage(AbstractEffect):
     """Laminar leakage flow proportional to pressure."""
 
     C_L: Scalar = param(
-        0.0, "m^3/(s Pa)", 0.0, 1e-9, "laminar leakage coefficient", nesting=0.0
+        0.0, "m^3/(s Pa)", 0.0, 1e-9, "laminar leakage coefficient", nesting=0.0, scale=1e-13
     )
 
     name: ClassVar[str] = "leakage"

@@ -26,7 +26,7 @@ from ._base import AbstractEffect, Scalar, Signals, rigid_acceleration
 class MastCompliance(AbstractEffect):
     """Load on a spring-damper on the carriage."""
 
-    ks_inv: Scalar = param(0.0, "m/N", 0.0, 1e-3, "mast compliance 1/k_s", nesting=0.0)
+    ks_inv: Scalar = param(0.0, "m/N", 0.0, 1e-3, "mast compliance 1/k_s", nesting=0.0, scale=1e-6)
     c_s: Scalar = param(5e3, "N s/m", 0.0, 1e6, "mast damping")
 
     name: ClassVar[str] = "mast_compliance"

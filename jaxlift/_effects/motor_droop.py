@@ -18,7 +18,7 @@ class MotorDroop(AbstractEffect):
     """Motor speed falling linearly with line pressure."""
 
     kappa: Scalar = param(
-        0.0, "rad/(s Pa)", 0.0, 1e-5, "motor speed droop per pressure", nesting=0.0
+        0.0, "rad/(s Pa)", 0.0, 1e-5, "motor speed droop per pressure", nesting=0.0, scale=3e-7
     )
 
     name: ClassVar[str] = "motor_droop"

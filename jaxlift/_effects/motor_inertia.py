@@ -23,7 +23,9 @@ from ._base import AbstractEffect, Scalar, Signals
 class MotorInertia(AbstractEffect):
     """First-order lag of the motor speed behind its static map."""
 
-    tau_m: Scalar = param(0.0, "s", 0.0, 5.0, "motor/pump speed time constant", nesting=0.0)
+    tau_m: Scalar = param(
+        0.0, "s", 0.0, 5.0, "motor/pump speed time constant", nesting=0.0, scale=0.1
+    )
 
     name: ClassVar[str] = "motor_inertia"
     state_names: ClassVar[tuple[str, ...]] = ("omega_m",)

@@ -19,7 +19,9 @@ from ._base import AbstractEffect, Scalar, Signals
 class StickSlip(AbstractEffect):
     """Stribeck-like breakaway friction near zero speed."""
 
-    dFs: Scalar = param(0.0, "N", 0.0, 1e5, "breakaway friction above Coulomb", nesting=0.0)
+    dFs: Scalar = param(
+        0.0, "N", 0.0, 1e5, "breakaway friction above Coulomb", nesting=0.0, scale=100.0
+    )
     v_s: Scalar = param(0.01, "m/s", 1e-4, 0.2, "Stribeck speed of the breakaway term")
 
     name: ClassVar[str] = "stick_slip"

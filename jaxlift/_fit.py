@@ -1,0 +1,514 @@
+"""Least-squares calibration: optimistix Levenberg--Marquardt through the simulation.
+
+Residuals are the model minus the measurement of height, speed (and pressure when
+the log has it), each divided by its noise level, over every fitted log. Free
+parameters are optimised in unconstrained coordinates (:func:`to_unconstrained`),
+reported in physical units. The Jacobian is forward mode through diffrax
+(``diffrax.ForwardMode``). Multi-start: several starting points drawn from a box
+around the initial guess (seeded), solved together with ``vmap``; the best is kept.
+After convergence the Jacobian gives standard errors and correlations; because the
+residuals of real logs are not white, the covariance is inflated by the AR(1)
+factor ``(1 + rho1) / (1 - rho1)`` of the residuals (stated in the result).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Float
+
+from ._effects import EFFECTS, AbstractEffect
+from ._log import Log
+from ._measurement import MeasurementModel
+from ._model import all_param_infos, model_params, with_params
+from ._params import ParameterError, ParamInfo, from_unconstrained, to_unconstrained
+from ._plant import Plant
+from ._simulate import Inputs, simulate, x64_check
+
+__all__ = [
+    "PARAMETER_SETS",
+    "Experiment",
+    "FitResult",
+    "resolve_free",
+    "make_experiments",
+    "residuals",
+    "fit",
+    "evaluate",
+]
+
+#: Named parameter sets (thesis 2.3.2): the motor set and the dynamic set.
+PARAMETER_SETS: dict[str, tuple[str, ...]] = {
+    "motor": ("k1", "k2", "k3", "z1", "z2", "z3"),
+    "dynamic": ("beta", "cf_con", "cf_in", "cf_out", "d"),
+}
+
+#: Residual (per sample) that stands for a failed simulation: large, finite, so that
+#: Levenberg--Marquardt rejects the step instead of propagating inf/NaN.
+FAILED_RESIDUAL = 1e3
+
+
+def resolve_free(free: str | Sequence[str], effects: Sequence[AbstractEffect]) -> list[str]:
+    """Expand set names into parameter names.
+
+    ``free`` is a comma-separated string or a sequence of set names (``motor``,
+    ``dynamic``, ``effects`` = the parameters of the switched-on effects, ``all`` =
+    motor + dynamic + effects) and/or parameter names (MODEL.md).
+    """
+    if isinstance(free, str):
+        free = [f.strip() for f in free.split(",") if f.strip()]
+    eff_names = [n for e in effects for n in type(e).param_infos()]
+    known = all_param_infos(effects)
+    out: list[str] = []
+    for item in free:
+        if item == "all":
+            names = [*PARAMETER_SETS["motor"], *PARAMETER_SETS["dynamic"], *eff_names]
+        elif item == "effects":
+            names = eff_names
+        elif item in PARAMETER_SETS:
+            names = list(PARAMETER_SETS[item])
+        elif item in known:
+            names = [item]
+        else:
+            raise ParameterError(
+                f"--free: {item!r} is neither a parameter set ({['all', 'effects', *PARAMETER_SETS]})"
+                f" nor a parameter of this model ({sorted(known)})"
+            )
+        out.extend(n for n in names if n not in out)
+    if not out:
+        raise ParameterError("no free parameters")
+    return out
+
+
+class Experiment(eqx.Module):
+    """One log prepared for fitting: its inputs, measurements and noise levels.
+
+    ``signals`` lists which of (height, speed, pressure) the log has (0, 1, 2)."""
+
+    inputs: Inputs
+    y: Float[Array, "3 N"]  # measured height [m], speed [m/s], pressure [Pa] (0 if absent)
+    sigma: Float[Array, " 3"]  # noise standard deviations of the three signals
+    signals: tuple[int, ...] = eqx.field(static=True)
+    name: str = eqx.field(static=True)
+
+    @property
+    def n_residuals(self) -> int:
+        return len(self.signals) * int(self.inputs.ts.shape[0])
+
+
+def make_experiments(
+    logs: Sequence[Log], measurement: MeasurementModel | None = None
+) -> list[Experiment]:
+    """Experiments from logs; noise levels from the measurement model (MODEL.md)."""
+    measurement = MeasurementModel() if measurement is None else measurement
+    out = []
+    for log in logs:
+        sig = measurement.sigmas(log.sample_period)
+        zeros = np.zeros(log.n)
+        y = np.stack(
+            [
+                log.height_m,
+                log.speed_mps if log.speed_mps is not None else zeros,
+                log.pressure_pa if log.pressure_pa is not None else zeros,
+            ]
+        )
+        signals = tuple(
+            i
+            for i, present in enumerate(
+                [True, log.speed_mps is not None, log.pressure_pa is not None]
+            )
+            if present
+        )
+        out.append(
+            Experiment(
+                inputs=Inputs.from_log(log),
+                y=jnp.asarray(y),
+                sigma=jnp.asarray([sig["height_m"], sig["speed_mps"], sig["pressure_pa"]]),
+                signals=signals,
+                name=log.name,
+            )
+        )
+    return out
+
+
+def _solution_residuals(sol, exp: Experiment) -> Float[Array, " M"]:
+    model = jnp.stack([sol.height, sol.speed, sol.pressure])
+    keep = np.asarray(exp.signals)
+    r = ((model - exp.y) / exp.sigma[:, None])[keep].reshape(-1)
+    return jnp.where(sol.ok & jnp.all(jnp.isfinite(r)), r, FAILED_RESIDUAL)
+
+
+def residuals(
+    plant: Plant,
+    effects: Sequence[AbstractEffect],
+    experiments: Sequence[Experiment],
+    *,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    **simulate_kwargs,
+) -> list[Float[Array, " M"]]:
+    """Scaled residuals (model - measured) / sigma, one vector per experiment."""
+    out = []
+    for exp in experiments:
+        sol = simulate(plant, effects, exp.inputs, adjoint=adjoint, **simulate_kwargs)
+        out.append(_solution_residuals(sol, exp))
+    return out
+
+
+# ------------------------------------------------------------------ the problem
+@dataclasses.dataclass(frozen=True)
+class _Problem:
+    plant: Plant
+    effects: tuple[AbstractEffect, ...]
+    experiments: tuple[Experiment, ...]
+    free: tuple[str, ...]
+    infos: tuple[ParamInfo, ...]
+    sim_max_steps: int = 40_000
+
+    def to_theta(self, values: Mapping[str, float]) -> Float[Array, " P"]:
+        return jnp.stack([to_unconstrained(i, values[i.name]) for i in self.infos])
+
+    def to_values(self, theta) -> dict[str, Float[Array, ""]]:
+        return {i.name: from_unconstrained(i, theta[k]) for k, i in enumerate(self.infos)}
+
+    def residual_fn(self) -> Callable:
+        def fn(theta, args):
+            plant, effects, experiments = args
+            plant, effects = with_params(plant, effects, self.to_values(theta))
+            rs = residuals(
+                plant,
+                effects,
+                experiments,
+                adjoint=diffrax.ForwardMode(),
+                max_steps=self.sim_max_steps,
+            )
+            return jnp.concatenate(rs)
+
+        return fn
+
+    @property
+    def args(self):
+        return (self.plant, self.effects, self.experiments)
+
+
+def _start_box(info: ParamInfo, value: float) -> tuple[float, float]:
+    """A box of plausible starting values around ``value`` (physical units)."""
+    if value == 0.0 or (info.nesting is not None and value == info.nesting):
+        ref = info.scale if info.scale is not None else 1.0
+        lo, hi = ref / 10.0, ref * 3.0
+    elif value > 0:
+        lo, hi = value / 3.0, value * 2.0
+    else:
+        lo, hi = value * 2.0, value / 3.0
+    eps = 1e-9 * max(abs(info.upper - info.lower), 1.0) if math.isfinite(info.upper) else 0.0
+    lo = max(lo, info.lower + eps)
+    hi = min(hi, info.upper - eps)
+    return lo, hi
+
+
+def _starts(problem: _Problem, init: Mapping[str, float], n: int, seed: int) -> np.ndarray:
+    """``n`` starting points (unconstrained): ``init`` first, then a Latin hypercube of the
+    start box (log-uniform for one-signed boxes), from ``seed``."""
+    theta0 = np.asarray(problem.to_theta(init))
+    if n <= 1:
+        return theta0[None, :]
+    rng = np.random.default_rng(seed)
+    p = len(problem.infos)
+    u = (rng.permuted(np.tile(np.arange(n - 1), (p, 1)), axis=1).T + rng.random((n - 1, p))) / (
+        n - 1
+    )
+    pts = [theta0]
+    for row in u:
+        vals = {}
+        for k, info in enumerate(problem.infos):
+            lo, hi = _start_box(info, float(init[info.name]))
+            if lo > 0 or hi < 0:
+                v = math.copysign(math.exp(math.log(abs(lo)) + row[k] * math.log(hi / lo)), lo)
+            else:
+                v = lo + row[k] * (hi - lo)
+            vals[info.name] = v
+        pts.append(np.asarray(problem.to_theta(vals)))
+    return np.stack(pts)
+
+
+@dataclasses.dataclass
+class StageResult:
+    """One Levenberg--Marquardt stage (one set of free parameters)."""
+
+    free: list[str]
+    chi2: float
+    converged: bool
+    message: str
+    num_steps: int
+    wall_s: float
+    start_chi2: list[float]  # final chi2 of every start (inf: failed)
+    best_start: int
+
+
+@dataclasses.dataclass
+class FitResult:
+    """A calibrated model and how well each parameter is determined.
+
+    Attributes:
+        params: every parameter of the model (plant + effects), physical units.
+        initial: the parameters the fit started from.
+        free: the names of the fitted parameters.
+        effects: names of the switched-on effects.
+        chi2: sum of squared scaled residuals at the optimum (fitted logs).
+        n_residuals: number of residuals.
+        chi2_per_log: ``{log name: chi2 / n}``.
+        stderr: ``{name: standard error}`` (physical units), AR(1)-inflated.
+        corr: correlation matrix of the free parameters (order of ``free``).
+        rho1: lag-1 autocorrelation of the residuals; ``inflation`` = (1+rho1)/(1-rho1).
+        undetermined: free parameters the data cannot determine (relative standard
+            error > 50 % or singular direction), with the reason.
+        stages: per-stage convergence information.
+    """
+
+    params: dict[str, float]
+    initial: dict[str, float]
+    free: list[str]
+    effects: list[str]
+    chi2: float
+    n_residuals: int
+    chi2_per_log: dict[str, float]
+    stderr: dict[str, float]
+    stderr_white: dict[str, float]
+    corr: np.ndarray
+    rho1: float
+    inflation: float
+    undetermined: dict[str, str]
+    stages: list[StageResult]
+
+    @property
+    def converged(self) -> bool:
+        return all(s.converged for s in self.stages)
+
+    def model(self) -> tuple[Plant, tuple[AbstractEffect, ...]]:
+        """The calibrated plant and effects."""
+        from ._simulate import make_effects
+
+        return with_params(Plant(), make_effects(self.effects), self.params)
+
+
+def _lm_solve(problem: _Problem, theta_starts: np.ndarray, *, max_steps: int, rtol, atol):
+    """Levenberg--Marquardt from every start at once (``vmap``)."""
+    fn = problem.residual_fn()
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+
+    @eqx.filter_jit
+    def solve_all(thetas, args):
+        def one(theta):
+            sol = optx.least_squares(fn, solver, theta, args, max_steps=max_steps, throw=False)
+            r = fn(sol.value, args)
+            return sol.value, sol.result, sol.stats["num_steps"], jnp.sum(r**2)
+
+        return jax.vmap(one)(thetas)
+
+    return solve_all(jnp.asarray(theta_starts), problem.args)
+
+
+def fit(
+    logs: Sequence[Log] | Sequence[Experiment],
+    *,
+    effects: Sequence[str] | str = (),
+    free: str | Sequence[str] | Sequence[str | Sequence[str]] = "all",
+    init: Mapping[str, float] | None = None,
+    staged: bool = False,
+    n_starts: int = 8,
+    seed: int = 0,
+    max_steps: int = 200,
+    rtol: float = 1e-6,
+    atol: float = 1e-6,
+    measurement: MeasurementModel | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> FitResult:
+    """Calibrate the model (plant + ``effects``) on ``logs`` by Levenberg--Marquardt.
+
+    Args:
+        logs: the fitted logs (or prepared experiments).
+        effects: effects switched on (names).
+        free: parameters to fit: set names / parameter names (see :func:`resolve_free`).
+        init: starting values (physical units) of any parameters; others nominal.
+        staged: fit the motor set first, then the dynamic set, then all of ``free``
+            (thesis 2.3.2); each stage starts from the previous optimum.
+        n_starts: starting points per stage (the first is the current estimate, the
+            others a seeded Latin hypercube of a box around it), solved with ``vmap``.
+        seed: seed of the starting points.
+        max_steps: Levenberg--Marquardt iterations per start.
+        progress: called with a line of text after each stage (e.g. ``print``).
+
+    Returns:
+        A :class:`FitResult`. Raises :class:`ParameterError` on bad names.
+    """
+    x64_check()
+    from ._simulate import make_effects
+
+    experiments = (
+        list(logs)
+        if logs and isinstance(logs[0], Experiment)
+        else make_experiments(logs, measurement)
+    )
+    effs = make_effects(effects)
+    plant0, effs = with_params(Plant(), effs, dict(init or {}))
+    free_all = resolve_free(free, effs)
+    if staged:
+        motor = [n for n in PARAMETER_SETS["motor"] if n in free_all]
+        dyn = [n for n in PARAMETER_SETS["dynamic"] if n in free_all]
+        stage_sets = [s for s in (motor, dyn, free_all) if s]
+    else:
+        stage_sets = [free_all]
+
+    values = {k: float(v) for k, v in model_params(plant0, effs).items()}
+    initial = dict(values)
+    infos_all = all_param_infos(effs)
+    stages: list[StageResult] = []
+    for k, names in enumerate(stage_sets):
+        problem = _Problem(
+            plant0, effs, tuple(experiments), tuple(names), tuple(infos_all[n] for n in names)
+        )
+        # keep the starting values strictly inside the bounds (logit/log transforms)
+        start_vals = {n: _inside(infos_all[n], values[n]) for n in names}
+        starts = _starts(problem, start_vals, n_starts, seed + k)
+        t0 = time.perf_counter()
+        thetas, results, nsteps, chi2s = _lm_solve(
+            problem, starts, max_steps=max_steps, rtol=rtol, atol=atol
+        )
+        chi2s = np.asarray(chi2s)
+        ok = np.asarray(results == optx.RESULTS.successful)
+        chi2s = np.where(np.isfinite(chi2s), chi2s, np.inf)
+        best = int(np.argmin(chi2s))
+        wall = time.perf_counter() - t0
+        for n, v in problem.to_values(thetas[best]).items():
+            values[n] = float(v)
+        msg = "converged" if ok[best] else str(optx.RESULTS[results[best]] or "not converged")
+        stages.append(
+            StageResult(
+                free=list(names),
+                chi2=float(chi2s[best]),
+                converged=bool(ok[best]),
+                message=msg,
+                num_steps=int(np.asarray(nsteps)[best]),
+                wall_s=wall,
+                start_chi2=[float(c) for c in chi2s],
+                best_start=best,
+            )
+        )
+        if progress is not None:
+            progress(
+                f"stage {k + 1}/{len(stage_sets)} ({len(names)} parameters, {len(starts)} starts): "
+                f"chi2/N = {chi2s[best] / sum(e.n_residuals for e in experiments):.3g}, "
+                f"{msg}, {int(np.asarray(nsteps)[best])} steps, {wall:.1f} s"
+            )
+
+    return _finish(plant0, effs, experiments, free_all, values, initial, stages)
+
+
+def _inside(info: ParamInfo, v: float) -> float:
+    lo, hi = info.lower, info.upper
+    span = (hi - lo) if math.isfinite(hi - lo) else max(abs(v), 1.0)
+    eps = 1e-6 * span
+    if v <= lo:
+        v = lo + (info.scale if info.scale and info.scale < 0.1 * span else eps)
+    if v >= hi:
+        v = hi - eps
+    return v
+
+
+def _finish(plant0, effs, experiments, free, values, initial, stages) -> FitResult:
+    infos = all_param_infos(effs)
+    problem = _Problem(plant0, effs, tuple(experiments), tuple(free), tuple(infos[n] for n in free))
+    theta = problem.to_theta(values)
+    fn = problem.residual_fn()
+    jac_fn = eqx.filter_jit(jax.jacfwd(fn))
+    r = np.asarray(eqx.filter_jit(fn)(theta, problem.args))
+    J = np.asarray(jac_fn(theta, problem.args))
+    # d(physical)/d(theta), diagonal
+    dx = np.array(
+        [
+            float(jax.grad(from_unconstrained, argnums=1)(info, theta[i]))
+            for i, info in enumerate(problem.infos)
+        ]
+    )
+    J_phys = J / dx[None, :]
+    n, p = J.shape
+    chi2 = float(r @ r)
+    s2 = chi2 / max(n - p, 1)
+    rho1 = _pooled_rho1(r, [e.n_residuals for e in experiments], experiments)
+    inflation = (1 + rho1) / max(1 - rho1, 1e-3)
+    scale = np.sqrt(np.sum(J_phys**2, axis=0))
+    scale = np.where(scale > 0, scale, 1.0)
+    Js = J_phys / scale
+    U, S, Vt = np.linalg.svd(Js, full_matrices=False)
+    cutoff = S[0] * 1e-8 if S.size else 0.0
+    inv_s2 = np.where(S > cutoff, 1.0 / np.maximum(S, 1e-300) ** 2, 0.0)
+    cov_s = (Vt.T * inv_s2) @ Vt
+    cov = cov_s / np.outer(scale, scale) * s2
+    se_white = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    se = se_white * math.sqrt(inflation)
+    d = np.where(se_white > 0, se_white, 1.0)
+    corr = cov / np.outer(d, d)
+    undetermined = {}
+    for k, name in enumerate(free):
+        val = values[name]
+        if S.size and np.any((S <= cutoff) & (np.abs(Vt[:, k]) > 0.3)):
+            undetermined[name] = "in a direction the data do not constrain (singular Jacobian)"
+        elif val != 0 and se[k] / abs(val) > 0.5:
+            undetermined[name] = f"relative standard error {se[k] / abs(val):.0%} > 50 %"
+        elif val == 0 and se[k] > 0:
+            undetermined[name] = "at zero"
+    per_log = {}
+    off = 0
+    for e in experiments:
+        m = e.n_residuals
+        per_log[e.name] = float(np.sum(r[off : off + m] ** 2) / m)
+        off += m
+    return FitResult(
+        params=dict(values),
+        initial=initial,
+        free=list(free),
+        effects=[e.name for e in effs],
+        chi2=chi2,
+        n_residuals=n,
+        chi2_per_log=per_log,
+        stderr={name: float(se[k]) for k, name in enumerate(free)},
+        stderr_white={name: float(se_white[k]) for k, name in enumerate(free)},
+        corr=corr,
+        rho1=rho1,
+        inflation=inflation,
+        undetermined=undetermined,
+        stages=stages,
+    )
+
+
+def _pooled_rho1(r, sizes, experiments) -> float:
+    """Lag-1 autocorrelation of the residuals, pooled over logs and signals."""
+    num = den = 0.0
+    off = 0
+    for e, m in zip(experiments, sizes):
+        n_sig = len(e.signals)
+        block = r[off : off + m].reshape(n_sig, -1)
+        off += m
+        for row in block:
+            row = row - row.mean()
+            num += float(row[1:] @ row[:-1])
+            den += float(row @ row)
+    return float(np.clip(num / den, -0.99, 0.99)) if den > 0 else 0.0
+
+
+def evaluate(
+    plant: Plant, effects: Sequence[AbstractEffect], logs: Sequence[Log], measurement=None
+) -> dict[str, float]:
+    """chi2 / N of a model on each log (no fitting)."""
+    out = {}
+    for exp in make_experiments(logs, measurement):
+        r = np.asarray(residuals(plant, effects, [exp])[0])
+        out[exp.name] = float(r @ r / r.size)
+    return out

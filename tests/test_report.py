@@ -1,0 +1,111 @@
+"""Tests of the report builder jaxlift._report."""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+import pytest
+
+from jaxlift._report import Report, format_value, markdown_inline_to_html
+
+ROWS = [
+    {"group": "all", "n": 12901, "rms_speed_mmps": 3.14159, "bias_speed_mmps": -0.0123},
+    {"group": "slow", "n": np.int64(7596), "rms_speed_mmps": np.float64(10.5), "extra": "a|b"},
+    {"group": "fast", "n": 1814, "rms_speed_mmps": math.nan},
+]
+
+
+def _png(path):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 16)
+    return path
+
+
+def _report(fig):
+    rep = Report("Calibration <of> lift_500kg")
+    rep.heading("Where the model fails")
+    rep.text(
+        "The **baseline** misses the oscillation in `stage 3` & below <2 Hz>.\n\n"
+        "- first point\n- second **point**"
+    )
+    rep.table(ROWS, caption="RMS errors per group")
+    rep.table(ROWS, columns=["group", "rms_speed_mmps"], floatfmt=".2f")
+    rep.figure(fig, "Residuals of the fit")
+    return rep
+
+
+def test_report_writes_markdown_and_html(tmp_path):
+    out = tmp_path / "out"
+    fig = _png(out / "figures" / "residuals.png")
+    md_path, html_path = _report(fig).write(out)
+    assert md_path == os.fspath(out / "report.md")
+    assert html_path == os.fspath(out / "report.html")
+    md = open(md_path, encoding="utf-8").read()
+    ht = open(html_path, encoding="utf-8").read()
+
+    # markdown: title, heading, pipe tables with formatted values, relative image link
+    assert md.startswith("# Calibration <of> lift_500kg\n")
+    assert "## Where the model fails" in md
+    assert "| group | n | rms_speed_mmps | bias_speed_mmps | extra |" in md
+    assert "|---|---:|---:|---:|---|" in md
+    assert "| all | 12901 | 3.14 | -0.0123 |  |" in md
+    assert "| slow | 7596 | 10.5 |  | a\\|b |" in md
+    assert "| fast | 1814 | – |  |  |" in md
+    assert "| all | 3.14 |" in md and "| slow | 10.50 |" in md
+    assert "*RMS errors per group*" in md
+    assert "![Residuals of the fit](figures/residuals.png)" in md
+    assert "The **baseline** misses" in md
+
+    # html: standalone, escaped, tables, relative <img>
+    assert ht.startswith("<!DOCTYPE html>")
+    assert "<style>" in ht and "</html>" in ht
+    assert "<title>Calibration &lt;of&gt; lift_500kg</title>" in ht
+    assert "<h2>Where the model fails</h2>" in ht
+    assert (
+        "<p>The <strong>baseline</strong> misses the oscillation in <code>stage 3</code> "
+        "&amp; below &lt;2 Hz&gt;.</p>"
+    ) in ht
+    assert "<ul><li>first point</li><li>second <strong>point</strong></li></ul>" in ht
+    assert '<td class="num">3.14</td>' in ht
+    assert '<td class="num">10.50</td>' in ht
+    assert "<td>a|b</td>" in ht
+    assert "<caption>RMS errors per group</caption>" in ht
+    assert '<img src="figures/residuals.png" alt="Residuals of the fit">' in ht
+    assert "<figcaption>Residuals of the fit</figcaption>" in ht
+    assert "<2 Hz>" not in ht and "<of>" not in ht
+
+
+def test_report_is_deterministic_and_links_relative(tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    fig = _png(out / "fig one.png")
+    a = _report(fig).write(out, stem="a")
+    b = _report(fig).write(out, stem="b")
+    for pa, pb in zip(a, b, strict=True):
+        with open(pa, "rb") as fa, open(pb, "rb") as fb:
+            assert fa.read() == fb.read()
+    md = open(a[0], encoding="utf-8").read()
+    assert "](fig%20one.png)" in md
+    # a relative path from the current directory, and one given relative to the out dir
+    monkeypatch.chdir(tmp_path)
+    rep = Report("t").figure("out/fig one.png", "x").figure("figures/later.png", "y")
+    md = open(rep.write("out")[0], encoding="utf-8").read()
+    assert "![x](fig%20one.png)" in md
+    assert "![y](figures/later.png)" in md
+
+
+def test_format_value_and_inline_markdown():
+    assert format_value(math.nan) == "–"
+    assert format_value(None) == ""
+    assert format_value(True) == "True"
+    assert format_value(3) == "3"
+    assert format_value(np.float32(0.5)) == "0.5"
+    assert format_value(1234567.0) == "1.23e+06"
+    assert format_value(math.inf) == "inf"
+    assert format_value("x") == "x"
+    assert markdown_inline_to_html("a <b> **c** `d**e**`") == (
+        "a &lt;b&gt; <strong>c</strong> <code>d**e**</code>"
+    )
+    with pytest.raises(ValueError):
+        Report("t").heading("x", level=7)
