@@ -73,6 +73,48 @@ def cmd_simulate(args) -> int:
     return 0
 
 
+def cmd_fit(args) -> int:
+    import jaxlift as jl
+    from jaxlift._workflows import run_fit
+
+    fit_logs = _read_logs(args.logs)
+    val_logs = _read_logs(args.validate or [])
+    init = None
+    if args.params:
+        init = jl.load_params_json(args.params, jl.all_param_infos("all"))
+    effects = [e for e in (args.effects or "").split(",") if e.strip()]
+    print(
+        f"fitting {len(fit_logs)} log(s) ({', '.join(lg.name for lg in fit_logs)}), "
+        f"held out: {', '.join(lg.name for lg in val_logs) or 'none'}; "
+        f"effects: {', '.join(effects) or 'none (baseline)'}; free: {args.free}",
+        flush=True,
+    )
+    result, metrics = run_fit(
+        fit_logs,
+        val_logs,
+        effects=effects,
+        free=args.free,
+        init=init,
+        staged=not args.joint,
+        n_starts=args.starts,
+        seed=args.seed,
+        out_dir=args.out,
+        progress=lambda line: print(line, flush=True),
+    )
+    print(f"converged: {result.converged}")
+    for name, lm in metrics["logs"].items():
+        b, a = lm["before"], lm["after"]
+        print(
+            f"  {name:24s} {lm['role']:9s} chi2/N {b['chi2_per_sample']:10.3g} -> "
+            f"{a['chi2_per_sample']:8.3g}   RMS speed {b.get('rms_speed_mmps', float('nan')):6.2f}"
+            f" -> {a.get('rms_speed_mmps', float('nan')):6.2f} mm/s"
+        )
+    if result.undetermined:
+        print(f"not determined by these data: {', '.join(result.undetermined)}")
+    print(f"wrote {args.out}/params.json, metrics.json, report.md, report.html, figures/")
+    return 0 if result.converged else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     from jaxlift._effects import EFFECTS
 
@@ -92,6 +134,27 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True, help="output CSV (a PNG plot is written beside it)")
     p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser(
+        "fit",
+        help="calibrate the model on logs (Levenberg-Marquardt) and report where it fails",
+    )
+    p.add_argument("logs", nargs="+", help="logs to fit (CSV)")
+    p.add_argument("--validate", nargs="*", default=[], help="held-out logs (not fitted)")
+    p.add_argument("--effects", default="", help="effects to add to the baseline (a,b)")
+    p.add_argument(
+        "--free",
+        default="all",
+        help="free parameters: sets motor, dynamic, effects, all, and/or names (a,b)",
+    )
+    p.add_argument("--params", help="starting values (JSON, MODEL.md names); default nominal")
+    p.add_argument("--starts", type=int, default=4, help="starting points per stage")
+    p.add_argument("--seed", type=int, default=0, help="seed of the starting points")
+    p.add_argument(
+        "--joint", action="store_true", help="fit all free parameters at once (default: staged)"
+    )
+    p.add_argument("--out", required=True, help="output directory")
+    p.set_defaults(func=cmd_fit)
     return parser
 
 

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from tqdm.auto import tqdm
 from jaxtyping import Array, Float
 
 from ._effects import EFFECTS, AbstractEffect
@@ -143,7 +144,10 @@ def _solution_residuals(sol, exp: Experiment) -> Float[Array, " M"]:
     model = jnp.stack([sol.height, sol.speed, sol.pressure])
     keep = np.asarray(exp.signals)
     r = ((model - exp.y) / exp.sigma[:, None])[keep].reshape(-1)
-    return jnp.where(sol.ok & jnp.all(jnp.isfinite(r)), r, FAILED_RESIDUAL)
+    # Only a solver failure is a failure here: a trajectory that leaves [0, x_max] is
+    # still a valid (if bad) fit candidate whose residuals carry a useful gradient.
+    solved = sol.result == diffrax.RESULTS.successful
+    return jnp.where(solved & jnp.all(jnp.isfinite(r)), r, FAILED_RESIDUAL)
 
 
 def residuals(
@@ -200,13 +204,14 @@ class _Problem:
 
 def _start_box(info: ParamInfo, value: float) -> tuple[float, float]:
     """A box of plausible starting values around ``value`` (physical units)."""
+    f = info.spread
     if value == 0.0 or (info.nesting is not None and value == info.nesting):
         ref = info.scale if info.scale is not None else 1.0
         lo, hi = ref / 10.0, ref * 3.0
     elif value > 0:
-        lo, hi = value / 3.0, value * 2.0
+        lo, hi = value / f, value * f
     else:
-        lo, hi = value * 2.0, value / 3.0
+        lo, hi = value * f, value / f
     eps = 1e-9 * max(abs(info.upper - info.lower), 1.0) if math.isfinite(info.upper) else 0.0
     lo = max(lo, info.lower + eps)
     hi = min(hi, info.upper - eps)
@@ -298,21 +303,57 @@ class FitResult:
         return with_params(Plant(), make_effects(self.effects), self.params)
 
 
-def _lm_solve(problem: _Problem, theta_starts: np.ndarray, *, max_steps: int, rtol, atol):
-    """Levenberg--Marquardt from every start at once (``vmap``)."""
+def _lm_solve(
+    problem: _Problem,
+    theta_starts: np.ndarray,
+    *,
+    max_steps: int,
+    rtol: float,
+    atol: float,
+    vectorize: bool,
+    progress: bool,
+    desc: str = "",
+):
+    """Levenberg--Marquardt from every start: all at once with ``vmap``
+    (``vectorize=True``), or one after the other through one compiled solve.
+
+    On CPU the loop is the faster of the two (measured: a ``vmap`` of 4 diffrax
+    solves cost 13x one solve, because the batched adaptive loop runs every member's
+    steps for all), so it is the default; ``vmap`` pays off on accelerators."""
     fn = problem.residual_fn()
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
 
-    @eqx.filter_jit
-    def solve_all(thetas, args):
-        def one(theta):
-            sol = optx.least_squares(fn, solver, theta, args, max_steps=max_steps, throw=False)
-            r = fn(sol.value, args)
-            return sol.value, sol.result, sol.stats["num_steps"], jnp.sum(r**2)
+    def one(theta, args):
+        sol = optx.least_squares(fn, solver, theta, args, max_steps=max_steps, throw=False)
+        r = fn(sol.value, args)
+        return sol.value, sol.result, sol.stats["num_steps"], jnp.sum(r**2)
 
-        return jax.vmap(one)(thetas)
+    if vectorize:
+        out = _jit_vmap(one)(jnp.asarray(theta_starts), problem.args)
+        value, result, steps, chi2 = out
+        return np.asarray(value), np.asarray(result._value), np.asarray(steps), np.asarray(chi2)
+    solve = _jit(one)
+    outs = []
+    bar = tqdm(theta_starts, desc=desc, unit="start", disable=not progress, leave=False)
+    for th in bar:
+        value, result, steps, chi2 = solve(jnp.asarray(th), problem.args)
+        outs.append((np.asarray(value), int(result._value), int(steps), float(chi2)))
+        bar.set_postfix(best_chi2=f"{min(o[3] for o in outs):.4g}")
+    values = np.stack([o[0] for o in outs])
+    return (
+        values,
+        np.asarray([o[1] for o in outs]),
+        np.asarray([o[2] for o in outs]),
+        np.asarray([o[3] for o in outs]),
+    )
 
-    return solve_all(jnp.asarray(theta_starts), problem.args)
+
+def _jit(f):
+    return eqx.filter_jit(f)
+
+
+def _jit_vmap(f):
+    return eqx.filter_jit(jax.vmap(f, in_axes=(0, None)))
 
 
 def fit(
@@ -325,9 +366,10 @@ def fit(
     n_starts: int = 8,
     seed: int = 0,
     max_steps: int = 200,
-    rtol: float = 1e-6,
-    atol: float = 1e-6,
+    rtol: float = 1e-5,
+    atol: float = 1e-5,
     measurement: MeasurementModel | None = None,
+    vectorize: bool = False,
     progress: Callable[[str], None] | None = None,
 ) -> FitResult:
     """Calibrate the model (plant + ``effects``) on ``logs`` by Levenberg--Marquardt.
@@ -343,7 +385,11 @@ def fit(
             others a seeded Latin hypercube of a box around it), solved with ``vmap``.
         seed: seed of the starting points.
         max_steps: Levenberg--Marquardt iterations per start.
-        progress: called with a line of text after each stage (e.g. ``print``).
+        rtol, atol: optimistix's Cauchy termination (both the step in the unconstrained
+            parameters and the change of every scaled residual must be this small).
+        vectorize: solve the starts together with ``vmap`` (else one after the other).
+        progress: called with a line of text after each stage (e.g. ``print``); when
+            given, a progress bar over the starts is shown too.
 
     Returns:
         A :class:`FitResult`. Raises :class:`ParameterError` on bad names.
@@ -371,24 +417,31 @@ def fit(
     infos_all = all_param_infos(effs)
     stages: list[StageResult] = []
     for k, names in enumerate(stage_sets):
+        plant_k, effs_k = with_params(plant0, effs, values)  # the current estimate
         problem = _Problem(
-            plant0, effs, tuple(experiments), tuple(names), tuple(infos_all[n] for n in names)
+            plant_k, effs_k, tuple(experiments), tuple(names), tuple(infos_all[n] for n in names)
         )
         # keep the starting values strictly inside the bounds (logit/log transforms)
         start_vals = {n: _inside(infos_all[n], values[n]) for n in names}
         starts = _starts(problem, start_vals, n_starts, seed + k)
         t0 = time.perf_counter()
-        thetas, results, nsteps, chi2s = _lm_solve(
-            problem, starts, max_steps=max_steps, rtol=rtol, atol=atol
+        thetas, codes, nsteps, chi2s = _lm_solve(
+            problem,
+            starts,
+            max_steps=max_steps,
+            rtol=rtol,
+            atol=atol,
+            vectorize=vectorize,
+            progress=progress is not None,
+            desc=f"stage {k + 1}/{len(stage_sets)}",
         )
-        chi2s = np.asarray(chi2s)
-        ok = np.asarray(results == optx.RESULTS.successful)
+        ok = codes == 0
         chi2s = np.where(np.isfinite(chi2s), chi2s, np.inf)
         best = int(np.argmin(chi2s))
         wall = time.perf_counter() - t0
         for n, v in problem.to_values(thetas[best]).items():
             values[n] = float(v)
-        msg = "converged" if ok[best] else str(optx.RESULTS[results[best]] or "not converged")
+        msg = "converged" if ok[best] else _lm_message(int(codes[best]))
         stages.append(
             StageResult(
                 free=list(names),
@@ -408,7 +461,17 @@ def fit(
                 f"{msg}, {int(np.asarray(nsteps)[best])} steps, {wall:.1f} s"
             )
 
-    return _finish(plant0, effs, experiments, free_all, values, initial, stages)
+    plant_f, effs_f = with_params(plant0, effs, values)
+    return _finish(plant_f, effs_f, experiments, free_all, values, initial, stages)
+
+
+def _lm_message(code: int) -> str:
+    """Text of an optimistix result code."""
+    for member in ("max_steps_reached", "nonlinear_divergence", "nonfinite_input"):
+        res = getattr(optx.RESULTS, member, None)
+        if res is not None and int(res._value) == code:
+            return member.replace("_", " ")
+    return f"not converged (optimistix result {code})"
 
 
 def _inside(info: ParamInfo, v: float) -> float:

@@ -60,6 +60,8 @@ class ParamInfo:
             the upper bound is then only checked, not enforced), ``"logit"`` (scaled to
             ``(lower, upper)``) or ``"identity"``. Default: ``"log"`` where ``lower`` is
             finite and ``>= 0``, else ``"logit"`` where both bounds are finite.
+        spread: multi-start fits draw starting points within a factor ``spread`` of the
+            current estimate (log-uniform).
     """
 
     name: str
@@ -71,6 +73,7 @@ class ParamInfo:
     nesting: float | None = None
     scale: float | None = None
     transform: str = ""
+    spread: float = 1.5
 
     def __post_init__(self):
         if not self.transform:
@@ -117,6 +120,7 @@ def param(
     nesting: float | None = None,
     scale: float | None = None,
     transform: str = "",
+    spread: float = 1.5,
     name: str | None = None,
 ):
     """Declare a physical-parameter field of an ``eqx.Module``.
@@ -126,7 +130,7 @@ def param(
     """
     info = dict(nominal=nominal, unit=unit, lower=lower, upper=upper)
     info.update(description=description, nesting=nesting, scale=scale, name=name)
-    info.update(transform=transform)
+    info.update(transform=transform, spread=spread)
     return eqx.field(default=nominal, converter=_as_float64, metadata={"jaxlift_param": info})
 
 
@@ -153,6 +157,7 @@ def param_infos(module: eqx.Module | type) -> dict[str, ParamInfo]:
             nesting=meta["nesting"],
             scale=meta["scale"],
             transform=meta["transform"],
+            spread=meta["spread"],
         )
     return out
 

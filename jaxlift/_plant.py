@@ -34,12 +34,12 @@ class Plant(eqx.Module):
     """
 
     u_batt: Scalar = param(24.0, "V", 1.0, 100.0, "battery voltage of the voltage unit")
-    k1: Scalar = param(1.9, "rad/(s V)", 0.05, 20.0, "motor map gain, stage 1")
-    k2: Scalar = param(1.8, "rad/(s V)", 0.05, 20.0, "motor map gain, stage 2")
-    k3: Scalar = param(1.7, "rad/(s V)", 0.05, 20.0, "motor map gain, stage 3")
-    z1: Scalar = param(-3.0, "rad/s", -40.0, 20.0, "motor map offset, stage 1")
-    z2: Scalar = param(-3.5, "rad/s", -40.0, 20.0, "motor map offset, stage 2")
-    z3: Scalar = param(-4.0, "rad/s", -40.0, 20.0, "motor map offset, stage 3")
+    k1: Scalar = param(1.9, "rad/(s V)", 0.05, 20.0, "motor map gain, stage 1", spread=1.1)
+    k2: Scalar = param(1.8, "rad/(s V)", 0.05, 20.0, "motor map gain, stage 2", spread=1.1)
+    k3: Scalar = param(1.7, "rad/(s V)", 0.05, 20.0, "motor map gain, stage 3", spread=1.1)
+    z1: Scalar = param(-3.0, "rad/s", -40.0, 20.0, "motor map offset, stage 1", spread=1.3)
+    z2: Scalar = param(-3.5, "rad/s", -40.0, 20.0, "motor map offset, stage 2", spread=1.3)
+    z3: Scalar = param(-4.0, "rad/s", -40.0, 20.0, "motor map offset, stage 3", spread=1.3)
     disp: Scalar = param(43e-6, "m^3/rev", 1e-7, 1e-3, "pump displacement")
     eta_v: Scalar = param(0.95, "-", 0.3, 1.0, "pump volumetric efficiency", transform="logit")
     A1: Scalar = param(28.27e-4, "m^2", 1e-5, 0.1, "piston area, stage 1")
@@ -50,11 +50,11 @@ class Plant(eqx.Module):
     m_st2: Scalar = param(145.0, "kg", 0.0, 5000.0, "mass added in stage 2 (inner mast)")
     m_st3: Scalar = param(140.0, "kg", 0.0, 5000.0, "mass added in stage 3 (middle mast)")
     V0: Scalar = param(2.0e-3, "m^3", 1e-5, 0.1, "oil volume under pressure at x = 0")
-    beta: Scalar = param(1.4e9, "Pa", 1e7, 1e10, "effective bulk modulus of the oil")
-    cf_con: Scalar = param(10.0, "N", 0.0, 1e4, "Coulomb friction")
+    beta: Scalar = param(1.4e9, "Pa", 1e7, 1e10, "effective bulk modulus of the oil", spread=4.0)
+    cf_con: Scalar = param(10.0, "N", 0.0, 1e4, "Coulomb friction", spread=3.0)
     cf_in: Scalar = param(16.0, "s/m", 0.0, 200.0, "friction speed scale (inner)")
-    cf_out: Scalar = param(545.0, "N", 0.0, 1e6, "friction fifth-power coefficient")
-    d: Scalar = param(300.0, "N s/m", 0.0, 1e5, "viscous damping")
+    cf_out: Scalar = param(545.0, "N", 0.0, 1e6, "friction fifth-power coefficient", spread=3.0)
+    d: Scalar = param(300.0, "N s/m", 0.0, 1e5, "viscous damping", spread=3.0)
 
     x_s1: float = eqx.field(static=True, default=1.5)  # m, stage boundary 1 -> 2
     x_s2: float = eqx.field(static=True, default=3.0)  # m, stage boundary 2 -> 3
