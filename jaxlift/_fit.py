@@ -24,10 +24,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from tqdm.auto import tqdm
 from jaxtyping import Array, Float
+from tqdm.auto import tqdm
 
-from ._effects import EFFECTS, AbstractEffect
+from ._effects import AbstractEffect
 from ._log import Log
 from ._measurement import MeasurementModel
 from ._model import all_param_infos, model_params, with_params
@@ -79,8 +79,9 @@ def resolve_free(free: str | Sequence[str], effects: Sequence[AbstractEffect]) -
         elif item in known:
             names = [item]
         else:
+            sets = ["all", "effects", *PARAMETER_SETS]
             raise ParameterError(
-                f"--free: {item!r} is neither a parameter set ({['all', 'effects', *PARAMETER_SETS]})"
+                f"--free: {item!r} is neither a parameter set ({sets})"
                 f" nor a parameter of this model ({sorted(known)})"
             )
         out.extend(n for n in names if n not in out)

@@ -1,4 +1,4 @@
-"""Step-size control that steps onto the input's jump times at O(log J) cost per step.
+"""Step-size control that steps onto the input's jump times at O(1)-O(log J) per step.
 
 ``diffrax.ClipStepSizeController(controller, jump_ts=...)`` (diffrax 0.7.2) does what
 a zero-order-held input needs -- every step ends just before the next jump time and
@@ -16,9 +16,11 @@ they are ever reached:
 No other way of using ``ClipStepSizeController`` avoids this: ``step_ts`` goes through
 the same ``_bump_next_t0`` and the same state, and there is no option that changes it.
 
-:class:`JumpStepSizeController` does the same thing with two binary searches per step
-(``jnp.searchsorted``) and keeps the jump times on the controller (a loop constant),
-not in its state, which is just the wrapped controller's.
+:class:`JumpStepSizeController` makes the same decisions from the one or two jump
+times next to the step (the index of the next jump time is kept in the controller
+state as a hint and checked; a binary search, ``jnp.searchsorted``, is the fallback
+when the check fails), and keeps the jump times on the controller (a loop constant),
+not in its state.
 """
 
 from __future__ import annotations
@@ -29,58 +31,57 @@ from typing import Any
 import diffrax
 import equinox as eqx
 import equinox.internal as eqxi
+import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, Int
 
 __all__ = ["JumpStepSizeController"]
-
-#: ``jnp.searchsorted`` method. "scan_unrolled" (a fixed log2(J) compare-and-halve
-#: chain, no inner loop) was the fastest on CPU inside the solver's while loop.
-_SEARCH_METHOD = "scan_unrolled"
 
 
 def _t_at(i, ts: Array):
     """``ts[i]``, but ``inf`` for ``i == len(ts)`` (``i`` in ``0 .. len(ts)``)."""
     n = ts.shape[0]
-    if n == 0:
-        return jnp.asarray(jnp.inf, dtype=ts.dtype)
-    return jnp.where(i >= n, jnp.inf, ts[jnp.minimum(i, n - 1)])
+    return jnp.where(i >= n, jnp.inf, ts[jnp.clip(i, 0, n - 1)])
 
 
-def _first_after(ts: Array, t) -> Array:
-    """Index of the first element of the sorted ``ts`` strictly greater than ``t``."""
-    if ts.shape[0] == 0:
-        return jnp.zeros((), dtype=jnp.int32)
-    return jnp.searchsorted(ts, t, side="right", method=_SEARCH_METHOD)
+def _first_after(ts: Array, t) -> Int[Array, ""]:
+    """Index of the first element of the sorted ``ts`` strictly greater than ``t``
+    (binary search, O(log J))."""
+    return jnp.searchsorted(ts, t, side="right").astype(jnp.int32)
 
 
-def _clip_before_next_jump(t_end, t_start, ts: Array):
-    """Clip ``t_end`` to the float just before the first jump time after ``t_start``."""
-    return jnp.minimum(eqxi.prevbefore(_t_at(_first_after(ts, t_start), ts)), t_end)
+def _is_first_after(i, ts: Array, t):
+    """Whether ``i`` is the index of the first element of ``ts`` greater than ``t``."""
+    return (_t_at(i, ts) > t) & ((i == 0) | (ts[jnp.maximum(i - 1, 0)] <= t))
 
 
 class JumpStepSizeController(diffrax.AbstractAdaptiveStepSizeController):
     """Wrap an adaptive controller (e.g. ``diffrax.PIDController``) so that the solver
     steps onto the discontinuities of the vector field at ``jump_ts``.
 
-    Semantics are those of ``diffrax.ClipStepSizeController(controller,
-    jump_ts=jump_ts)`` (diffrax 0.7.2): each proposed step is clipped to end at
-    ``prevbefore(jump)`` for the first jump time after its start; a step that ended at
-    ``prevbefore(jump)`` (or at the jump) is followed by one starting at
+    The decisions are those of ``diffrax.ClipStepSizeController(controller,
+    jump_ts=jump_ts)`` (diffrax 0.7.2), step for step: each proposed step is clipped to
+    end at ``prevbefore(jump)`` for the first jump time after its start; a step that
+    ended at ``prevbefore(jump)`` (or at the jump) is followed by one starting at
     ``nextafter(jump)`` (resp. just after it), so the jump itself is never evaluated;
     and ``made_jump`` is reported so that FSAL solvers (``Tsit5``) re-evaluate the
-    vector field after the jump. Jump times never reached cost nothing.
+    vector field after the jump.
 
-    The per-step cost is two binary searches (O(log J)) instead of
-    ``ClipStepSizeController``'s two full passes over ``jump_ts``, and the jump times
-    are not part of the controller state (the solver loop's carry).
+    The cost per step does not grow with the number of jump times: the index of the
+    next jump time is carried in the controller state and checked with two
+    comparisons; only when the check fails (a jump time listed twice, or a solve
+    started elsewhere) does it fall back to a binary search (``jnp.searchsorted``,
+    O(log J)). Under ``vmap`` the check and the search both run (``lax.cond`` becomes a
+    select), which is still O(log J). The jump times are a constant of the solver's
+    loop, not part of its carried state.
 
     ``jump_ts`` may be traced and differentiated (e.g. shifted by a fitted delay): the
     clipped step ends are differentiable in the jump times, as with diffrax's own.
 
     Attributes:
         controller: the wrapped adaptive controller.
-        jump_ts: jump times, sorted on construction, floating point, 1-D.
+        jump_ts: jump times, floating point, 1-D, sorted ascending (sorted on
+            construction unless ``assume_sorted=True``).
     """
 
     controller: diffrax.AbstractAdaptiveStepSizeController
@@ -90,10 +91,21 @@ class JumpStepSizeController(diffrax.AbstractAdaptiveStepSizeController):
         self,
         controller: diffrax.AbstractAdaptiveStepSizeController,
         jump_ts: Float[ArrayLike, " J"],
+        *,
+        assume_sorted: bool = False,
     ):
+        """**Arguments:**
+
+        - ``controller``: the adaptive controller to wrap.
+        - ``jump_ts``: times at which the vector field jumps (1-D, floating point).
+        - ``assume_sorted``: skip sorting ``jump_ts`` (an O(J log J) sort per solve);
+          only for arrays known to be sorted ascending -- unsorted ones then give wrong
+          step ends, silently.
+        """
         if not isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
             raise ValueError(
-                f"JumpStepSizeController wraps an adaptive step size controller, got {controller!r}"
+                "JumpStepSizeController wraps an adaptive step size controller, got "
+                f"{controller!r}"
             )
         jump_ts = jnp.asarray(jump_ts)
         if jump_ts.ndim != 1:
@@ -101,7 +113,7 @@ class JumpStepSizeController(diffrax.AbstractAdaptiveStepSizeController):
         if not jnp.issubdtype(jump_ts.dtype, jnp.floating):
             raise ValueError(f"jump_ts must be floating point, not {jump_ts.dtype}")
         self.controller = controller
-        self.jump_ts = jnp.sort(jump_ts)
+        self.jump_ts = jump_ts if assume_sorted else jnp.sort(jump_ts)
 
     @property
     def rtol(self):
@@ -141,10 +153,14 @@ class JumpStepSizeController(diffrax.AbstractAdaptiveStepSizeController):
         args,
         func: Callable,
         error_order,
-    ) -> tuple[Any, Any]:
+    ) -> tuple[Any, tuple[Int[Array, ""], Any]]:
         t1, inner_state = self.controller.init(terms, t0, t1, y0, dt0, args, func, error_order)
         ts = self._ts(jnp.result_type(t0))
-        return _clip_before_next_jump(t1, t0, ts), inner_state
+        if ts.shape[0] == 0:
+            return t1, (jnp.zeros((), jnp.int32), inner_state)
+        k = _first_after(ts, t0)
+        # the first step ends just before the first jump time after t0
+        return jnp.minimum(eqxi.prevbefore(_t_at(k, ts)), t1), (k, inner_state)
 
     def adapt_step_size(
         self,
@@ -157,20 +173,27 @@ class JumpStepSizeController(diffrax.AbstractAdaptiveStepSizeController):
         error_order,
         controller_state,
     ):
+        hint, inner_state = controller_state
         keep_step, next_t0, next_t1, made_jump, inner_state, result = (
             self.controller.adapt_step_size(
-                t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state
+                t0, t1, y0, y1_candidate, args, y_error, error_order, inner_state
             )
         )
         ts = self._ts(jnp.result_type(next_t0))
-        n = ts.shape[0]
-        if n == 0:
-            return keep_step, next_t0, next_t1, made_jump, inner_state, result
+        if ts.shape[0] == 0:
+            return keep_step, next_t0, next_t1, made_jump, (hint, inner_state), result
 
+        # k: the first jump time after next_t0. ``hint`` is that for t0, and next_t0 is
+        # t0 (rejected step) or t1 <= prevbefore(ts[hint]) (accepted), so it is
+        # normally right; checked, with a binary search if not.
+        k = jax.lax.cond(
+            _is_first_after(hint, ts, next_t0),
+            lambda: hint,
+            lambda: _first_after(ts, next_t0),
+        )
         # Did the step end just before a jump (``nextafter(next_t0)`` is one) or on one
-        # (``next_t0`` is one)? ts[k - 1] <= next_t0 < ts[k], so these are the only
-        # candidates: the equivalent of ClipStepSizeController's two ``jnp.any``.
-        k = _first_after(ts, next_t0)
+        # (``next_t0`` is one)? With ts[k - 1] <= next_t0 < ts[k] these are the only
+        # candidates: ClipStepSizeController's two ``jnp.any`` over all jump times.
         after = eqxi.nextafter(next_t0)
         before_jump = _t_at(k, ts) == after
         on_jump = (k > 0) & (ts[jnp.maximum(k - 1, 0)] == next_t0)
@@ -180,6 +203,15 @@ class JumpStepSizeController(diffrax.AbstractAdaptiveStepSizeController):
         made_jump = made_jump | before_jump | on_jump
         # never a zero-length (or negative) next step (diffrax issue #713)
         next_t1 = jnp.maximum(eqxi.nextafter(next_t0), next_t1)
-        # end the next step just before the first jump after its start
-        next_t1 = _clip_before_next_jump(next_t1, next_t0, ts)
-        return keep_step, next_t0, next_t1, made_jump, inner_state, result
+        # the first jump time after the (bumped) next_t0: k, or k + 1 after a jump
+        # (ts[k - 1] <= next_t0 still holds); checked, binary search if not (a jump time
+        # listed twice)
+        k = k + (_t_at(k, ts) <= next_t0).astype(jnp.int32)
+        k = jax.lax.cond(
+            _t_at(k, ts) > next_t0,
+            lambda: k,
+            lambda: _first_after(ts, next_t0),
+        )
+        # end the next step just before it
+        next_t1 = jnp.minimum(eqxi.prevbefore(_t_at(k, ts)), next_t1)
+        return keep_step, next_t0, next_t1, made_jump, (k, inner_state), result

@@ -17,7 +17,7 @@ import numpy as np
 from . import _analysis as an
 from ._fit import FitResult, fit
 from ._log import Log
-from ._model import all_param_infos, model_params, with_params
+from ._model import all_param_infos, with_params
 from ._plant import Plant
 from ._plots import plot_overlay
 from ._report import Report

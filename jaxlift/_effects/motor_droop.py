@@ -8,10 +8,10 @@ from __future__ import annotations
 
 from typing import ClassVar
 
+import jax.numpy as jnp
+
 from .._params import param
 from ._base import AbstractEffect, Scalar, Signals
-
-import jax.numpy as jnp
 
 
 class MotorDroop(AbstractEffect):
