@@ -115,6 +115,32 @@ def cmd_fit(args) -> int:
     return 0 if result.converged else 1
 
 
+def cmd_diagnose(args) -> int:
+    from jaxlift._workflows import run_diagnose
+
+    logs = _read_logs(args.logs)
+    val = _read_logs(args.validate or [])
+    print(
+        f"diagnosing {len(logs)} log(s); held out: {', '.join(lg.name for lg in val) or 'none'}",
+        flush=True,
+    )
+    steps = run_diagnose(
+        logs,
+        val,
+        out_dir=args.out,
+        iterate=not args.once,
+        n_starts=args.starts,
+        seed=args.seed,
+        progress=lambda line: print(line, flush=True),
+    )
+    found = [d.verdict for d in steps if d.verdict != "none"]
+    print(f"verdict: {steps[0].verdict}")
+    if len(steps) > 1:
+        print(f"missing effects, in order: {', '.join(found) or 'none'}")
+    print(f"wrote {args.out}/diagnosis.json, report.md, report.html, figures/")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from jaxlift._effects import EFFECTS
 
@@ -155,6 +181,23 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=cmd_fit)
+
+    p = sub.add_parser(
+        "diagnose",
+        help="fit the baseline, test every candidate effect, name the missing one(s)",
+    )
+    p.add_argument("logs", nargs="+", help="logs to fit (CSV)")
+    p.add_argument("--validate", nargs="*", default=[], help="held-out logs (not fitted)")
+    p.add_argument(
+        "--once",
+        action="store_true",
+        help="one diagnosis only (default: add the winner and "
+        "diagnose again until none is missing)",
+    )
+    p.add_argument("--starts", type=int, default=2, help="starting points of each fit")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="output directory")
+    p.set_defaults(func=cmd_diagnose)
     return parser
 
 

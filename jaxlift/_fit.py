@@ -512,7 +512,9 @@ def _finish(plant0, effs, experiments, free, values, initial, stages) -> FitResu
     Js = J_phys / scale
     U, S, Vt = np.linalg.svd(Js, full_matrices=False)
     cutoff = S[0] * 1e-8 if S.size else 0.0
-    inv_s2 = np.where(S > cutoff, 1.0 / np.maximum(S, 1e-300) ** 2, 0.0)
+    keep = S > cutoff
+    inv_s2 = np.zeros_like(S)
+    inv_s2[keep] = 1.0 / S[keep] ** 2
     cov_s = (Vt.T * inv_s2) @ Vt
     cov = cov_s / np.outer(scale, scale) * s2
     se_white = np.sqrt(np.maximum(np.diag(cov), 0.0))

@@ -305,9 +305,14 @@ def _solve(plant, effects, inputs, solver, rtol, atol_base, max_steps, adjoint):
     scales = [jnp.asarray(e.state_scales, dtype=jnp.float64) for e in effects]
     atol = jnp.concatenate([atol_base, *[s * 1.0 for s in scales]]) if effects else atol_base
     delay = sum((e.delay() for e in effects), jnp.zeros(()))
-    controller = diffrax.ClipStepSizeController(
+    # steps end just before and restart just after each input jump, as with
+    # diffrax.ClipStepSizeController(..., jump_ts=...), at a cost per step independent
+    # of the number of jumps (see _stepping.py)
+    from ._stepping import JumpStepSizeController
+
+    controller = JumpStepSizeController(
         diffrax.PIDController(rtol=rtol, atol=atol, dtmax=DTMAX, norm=_error_norm),
-        jump_ts=inputs.jump_ts + delay,
+        inputs.jump_ts + delay,
     )
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(_vector_field),

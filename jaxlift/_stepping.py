@@ -104,8 +104,7 @@ class JumpStepSizeController(diffrax.AbstractAdaptiveStepSizeController):
         """
         if not isinstance(controller, diffrax.AbstractAdaptiveStepSizeController):
             raise ValueError(
-                "JumpStepSizeController wraps an adaptive step size controller, got "
-                f"{controller!r}"
+                f"JumpStepSizeController wraps an adaptive step size controller, got {controller!r}"
             )
         jump_ts = jnp.asarray(jump_ts)
         if jump_ts.ndim != 1:
@@ -206,12 +205,12 @@ class JumpStepSizeController(diffrax.AbstractAdaptiveStepSizeController):
         # the first jump time after the (bumped) next_t0: k, or k + 1 after a jump
         # (ts[k - 1] <= next_t0 still holds); checked, binary search if not (a jump time
         # listed twice)
-        k = k + (_t_at(k, ts) <= next_t0).astype(jnp.int32)
-        k = jax.lax.cond(
-            _t_at(k, ts) > next_t0,
-            lambda: k,
+        k_next = k + (_t_at(k, ts) <= next_t0).astype(jnp.int32)
+        k_next = jax.lax.cond(
+            _t_at(k_next, ts) > next_t0,
+            lambda: k_next,
             lambda: _first_after(ts, next_t0),
         )
         # end the next step just before it
-        next_t1 = jnp.minimum(eqxi.prevbefore(_t_at(k, ts)), next_t1)
-        return keep_step, next_t0, next_t1, made_jump, (k, inner_state), result
+        next_t1 = jnp.minimum(eqxi.prevbefore(_t_at(k_next, ts)), next_t1)
+        return keep_step, next_t0, next_t1, made_jump, (k_next, inner_state), result

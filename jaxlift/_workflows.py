@@ -354,3 +354,205 @@ def _pool(tables: dict[str, list[dict]]) -> list[dict]:
             }
         )
     return out
+
+
+# ------------------------------------------------------------------ diagnose
+#: What each effect looks like in a log: the physical signature a service engineer
+#: can check on their own data.
+SIGNATURES = {
+    "stick_slip": "sustained oscillations at low speed whose speed touches zero",
+    "motor_inertia": "the speed lags the input after every step of the duty cycle",
+    "motor_droop": "the lifting speed falls as the load (pressure) grows",
+    "leakage": "the fork sinks while the valve is closed (holds)",
+    "entrained_air": "the oscillation frequency depends on pressure (load)",
+    "hose_compliance": "the oscillation frequency varies less with height than the model's",
+    "mast_compliance": "a second, higher peak in the speed spectrum",
+    "input_delay": "motion starts a fixed time after each input change",
+}
+
+
+def _signature_metrics(log: Log, sim: dict[str, np.ndarray]) -> dict[str, float]:
+    """Numbers behind the signatures, measured vs model."""
+    segs = an.segment_log(log)
+    out: dict[str, float] = {}
+    holds = [s for s in segs if s.regime == "hold" and s.duration > 1.5]
+    if holds:
+
+        def slope(h):
+            return float(
+                np.mean([np.polyfit(log.time_s[s.slice], h[s.slice], 1)[0] for s in holds])
+            )
+
+        out["hold_sink_meas_mmps"] = slope(log.height_m) * 1e3
+        out["hold_sink_model_mmps"] = slope(sim["height"]) * 1e3
+    slow = [s for s in segs if s.regime == "slow"]
+    if slow and log.speed_mps is not None:
+        k = max(1, int(round(0.1 / log.sample_period)))
+        kern = np.ones(k) / k
+        idx = np.concatenate([np.arange(s.start, s.stop) for s in slow])
+        vm = np.convolve(log.speed_mps, kern, mode="same")[idx]
+        vs = sim["speed"][idx]
+        out["slow_share_near_zero_meas"] = float(np.mean(vm < 0.003))
+        out["slow_share_near_zero_model"] = float(np.mean(vs < 0.003))
+    return out
+
+
+def run_diagnose(
+    logs: Sequence[Log],
+    validate_logs: Sequence[Log] = (),
+    *,
+    out_dir: str | pathlib.Path,
+    iterate: bool = True,
+    n_starts: int = 2,
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+) -> list:
+    """Diagnose (iteratively: add the winner and diagnose again until ``none``), write
+    ``diagnosis.json``, figures and the report. Returns the list of diagnoses."""
+    from ._diagnose import diagnose, diagnose_iteratively
+
+    if iterate:
+        steps = diagnose_iteratively(
+            logs, validate_logs, n_starts=n_starts, seed=seed, progress=progress
+        )
+    else:
+        steps = [diagnose(logs, validate_logs, n_starts=n_starts, seed=seed, progress=progress)]
+    out = pathlib.Path(out_dir)
+    figs = out / "figures"
+    figs.mkdir(parents=True, exist_ok=True)
+    all_logs = [*logs, *validate_logs]
+    # the models of each step: baseline, +effect 1, +effect 2, ...
+    models = [(d.base_effects, d.base_fit.params) for d in steps]
+    if steps[-1].winner_fit is not None:
+        wf = steps[-1].winner_fit
+        models.append((wf.effects, wf.params))
+    sims = {tuple(e): simulate_logs(p, e, all_logs) for e, p in models}
+    labels = ["baseline" + "".join(f" + {x}" for x in e) for e, _ in models]
+    error_rows = []
+    for (e, _p), label in zip(models, labels):
+        row = {"model": label}
+        for i, lg in enumerate(all_logs):
+            role = "fit" if i < len(logs) else "held-out"
+            row[f"{lg.name} ({role}) chi2/N"] = _chi2n(lg, sims[tuple(e)][i])
+        error_rows.append(row)
+    _plot_error_steps(error_rows, figs / "error_by_step.png")
+    first = steps[0]
+    final = steps[-1]
+    verdicts = [d.verdict for d in steps if d.verdict != "none"]
+    data = {
+        "verdict": first.verdict,
+        "verdicts": verdicts,
+        "ranking": first.as_dict()["ranking"],
+        "steps": [d.as_dict() for d in steps],
+        "errors_by_step": error_rows,
+        "final_effects": list(models[-1][0]),
+        "final_params": {k: float(v) for k, v in models[-1][1].items()},
+        "signatures": {},
+    }
+    rep = Report("jaxlift diagnosis: which physical effect is missing?")
+    missing = ", ".join(f"**{v}**" for v in verdicts) or "**none**"
+    rep.text(
+        f"Fitted logs: {', '.join(f'`{lg.name}`' for lg in logs)}; held out: "
+        f"{', '.join(f'`{lg.name}`' for lg in validate_logs) or 'none'}. "
+        f"Missing from the baseline model: {missing}."
+    )
+    rep.heading("The error falling, step by step")
+    rep.table(error_rows, caption="chi2 per sample (1 = sensor noise level) of each model.")
+    rep.figure(figs / "error_by_step.png", "Error of each model on fitted and held-out logs.")
+    for k, d in enumerate(steps):
+        rep.heading(
+            f"Step {k + 1}: model = baseline{''.join(' + ' + x for x in d.base_effects)}; "
+            f"verdict: {d.verdict}"
+        )
+        rep.text(
+            f"chi2/N of the fitted model {d.base_chi2 / d.n_residuals:.3g}; residual "
+            f"autocorrelation inflates variances by {d.inflation:.1f} (so the tests count "
+            f"{d.n_residuals / d.inflation:.0f} effective samples, not {d.n_residuals})."
+        )
+        rep.table(
+            [
+                {
+                    "effect": s.effect,
+                    "score z": s.z,
+                    "p (screen)": s.p_value,
+                    "dBIC (refit)": s.delta_bic,
+                    "held-out chi2/N before": s.heldout_chi2_before,
+                    "after": s.heldout_chi2_after,
+                    "signature": SIGNATURES.get(s.effect, ""),
+                }
+                for s in d.ranking
+            ],
+            caption="Ranking: confirmed candidates by BIC change (negative = better), then "
+            "the others by score. Verdict = largest BIC drop beyond 10 with no worse "
+            "held-out error.",
+        )
+    # the signature, on the user's own data, before and after adding the effects
+    rep.heading("The physical signature on your data")
+    base_sims = sims[tuple(models[0][0])]
+    final_sims = sims[tuple(models[-1][0])]
+    osc = {"baseline": [], labels[-1]: []}
+    for i, lg in enumerate(all_logs):
+        sig_b = _signature_metrics(lg, base_sims[i])
+        sig_f = _signature_metrics(lg, final_sims[i])
+        data["signatures"][lg.name] = {"baseline": sig_b, "final": sig_f}
+        if lg.speed_mps is not None:
+            segs = an.segment_log(lg)
+            osc["baseline"].extend(an.oscillation_table(lg, base_sims[i]["speed"], segs))
+            osc[labels[-1]].extend(an.oscillation_table(lg, final_sims[i]["speed"], segs))
+        if i == 0:
+            segs = an.segment_log(lg)
+            for w, (t0, t1) in enumerate(an.zoom_windows(lg, segs, n=2)):
+                p = plot_overlay(
+                    lg,
+                    [
+                        ("baseline", base_sims[i]["height"], base_sims[i]["speed"], None),
+                        (labels[-1], final_sims[i]["height"], final_sims[i]["speed"], None),
+                    ],
+                    figs / f"{lg.name}_signature{w + 1}.png",
+                    window=(t0, t1),
+                    title=f"{lg.name}: {t0:.0f}-{t1:.0f} s",
+                )
+                rep.figure(p, f"{lg.name}, {t0:.0f}-{t1:.0f} s: measured, baseline, final model.")
+    if any(osc.values()):
+        p = an.plot_oscillations_vs_height(osc, figs / "oscillations_vs_height.png")
+        rep.figure(
+            p,
+            "Oscillation frequency and amplitude per steady segment against height: "
+            "measured (black), baseline and final model.",
+        )
+    sig_rows = [
+        {"log": name, "model": which, **vals}
+        for name, v in data["signatures"].items()
+        for which, vals in v.items()
+    ]
+    rep.table(
+        sig_rows,
+        caption="Signature numbers: sinking speed in holds (leakage), share of slow "
+        "motion with speed near zero (stick-slip); measured vs model.",
+    )
+    with open(out / "diagnosis.json", "w", encoding="utf-8") as fh:
+        json.dump(_finite(data), fh, indent=2)
+        fh.write("\n")
+    rep.write(out)
+    del final
+    return steps
+
+
+def _plot_error_steps(rows: list[dict], path) -> str:
+    import matplotlib.pyplot as plt
+
+    keys = [k for k in rows[0] if k != "model"]
+    fig, ax = plt.subplots(figsize=(8, 4))
+    x = np.arange(len(rows))
+    for j, k in enumerate(keys):
+        ax.plot(x, [r[k] for r in rows], "o-", label=k, color=f"C{j}")
+    ax.set_xticks(x, [r["model"].replace("baseline + ", "+") for r in rows], rotation=15)
+    ax.set_yscale("log")
+    ax.axhline(1.0, color="0.5", ls="--", lw=0.8)
+    ax.set_ylabel("chi2 per sample")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return str(path)

@@ -1,0 +1,246 @@
+"""``JumpStepSizeController`` (jaxlift._stepping) against diffrax's own
+``ClipStepSizeController(..., jump_ts=...)``: same steps, same trajectory, same
+derivatives, the jump times hit, under ``vmap`` and ``jacfwd`` too.
+
+The lift runs here are short (6 s at 100 Hz) with ramps (pwm changes at every sample)
+and holds, so that both the dense jumps of a ramp and isolated jumps occur.
+"""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxlift as jl
+from jaxlift import _simulate
+from jaxlift._stepping import JumpStepSizeController
+
+FS = 100.0
+TS = np.arange(0.0, 6.0 + 0.5 / FS, 1.0 / FS)
+# hold, 0.5 s ramp up to 0.5, hold, 0.3 s ramp down to 0.2, hold, step to 0, hold
+PWM = np.interp(TS, [0.0, 0.5, 1.0, 2.5, 2.8, 4.0, 4.0001, 6.0], [0, 0, 0.5, 0.5, 0.2, 0.2, 0, 0])
+PWM = np.round(PWM, 4)
+LOAD = np.full(TS.shape, 1000.0)
+INPUTS = jl.Inputs.from_arrays(TS, PWM, LOAD, 0.4)
+RTOL = 1e-6
+
+
+def _pid(effects=(), rtol=RTOL):
+    scales = [jnp.asarray(e.state_scales, dtype=jnp.float64) for e in effects]
+    atol = jnp.concatenate([jnp.asarray(_simulate.DEFAULT_ATOL), *scales]) * (rtol / RTOL)
+    return diffrax.PIDController(
+        rtol=rtol, atol=atol, dtmax=_simulate.DTMAX, norm=_simulate._error_norm
+    )
+
+
+def _controller(kind, jump_ts, effects=(), rtol=RTOL):
+    if kind == "clip":
+        return diffrax.ClipStepSizeController(_pid(effects, rtol), jump_ts=jump_ts)
+    return JumpStepSizeController(_pid(effects, rtol), jump_ts)
+
+
+@eqx.filter_jit
+def _solve(kind, plant, effects, inputs, jump_ts, steps=False, adjoint=None, rtol=RTOL):
+    """The lift as ``jl.simulate`` solves it, with the step-size controller chosen."""
+    saveat = diffrax.SaveAt(steps=True) if steps else diffrax.SaveAt(ts=inputs.ts)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(_simulate._vector_field),
+        diffrax.Tsit5(),
+        t0=inputs.ts[0],
+        t1=inputs.ts[-1],
+        dt0=None,
+        y0=_simulate.initial_state(plant, effects, inputs),
+        args=(plant, effects, inputs),
+        saveat=saveat,
+        stepsize_controller=_controller(kind, jump_ts, effects, rtol),
+        max_steps=16384,
+        adjoint=diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
+    )
+    return sol.ts, sol.ys, sol.stats["num_steps"]
+
+
+def _delay(tau_d):
+    return jl.make_effects("input_delay", {"tau_d": tau_d})
+
+
+def test_inputs_have_ramps_and_holds():
+    n = INPUTS.jump_ts.size
+    assert 60 < n < 200  # every sample along the ramps, plus the step to 0
+    assert np.all(np.diff(np.asarray(INPUTS.jump_ts)) > 0)
+
+
+@pytest.mark.parametrize("tau_d", [0.0, 0.123])
+def test_same_steps_and_trajectory_as_clip(tau_d):
+    plant, effects = jl.Plant(), _delay(tau_d)
+    jump_ts = INPUTS.jump_ts + tau_d
+    _, ys_clip, n_clip = _solve("clip", plant, effects, INPUTS, jump_ts)
+    _, ys_new, n_new = _solve("new", plant, effects, INPUTS, jump_ts)
+    assert int(n_new) == int(n_clip)
+    # the same decisions step for step: far inside the solver tolerance
+    np.testing.assert_allclose(ys_new[:, 0], ys_clip[:, 0], rtol=0, atol=1e-12)  # m
+    np.testing.assert_allclose(ys_new[:, 1], ys_clip[:, 1], rtol=0, atol=1e-12)  # m/s
+    np.testing.assert_allclose(ys_new[:, 2], ys_clip[:, 2], rtol=1e-12, atol=1e-6)  # Pa
+    t_clip, _, _ = _solve("clip", plant, effects, INPUTS, jump_ts, steps=True)
+    t_new, _, _ = _solve("new", plant, effects, INPUTS, jump_ts, steps=True)
+    np.testing.assert_array_equal(np.asarray(t_new), np.asarray(t_clip))
+
+
+def _step_times(jump_ts, tau_d=0.0):
+    ts, _, n = _solve("new", jl.Plant(), _delay(tau_d), INPUTS, jump_ts, steps=True)
+    ts = np.asarray(ts)
+    return ts[np.isfinite(ts)], int(n)
+
+
+@pytest.mark.parametrize("tau_d", [0.0, 0.123])
+def test_lands_on_every_jump_time(tau_d):
+    """A step ends just before each jump time and the next starts just after it
+    (``SaveAt(steps=True)`` records the start of the next step, ``nextafter(jump)``),
+    so no step straddles a discontinuity of the right-hand side."""
+    jumps = np.asarray(INPUTS.jump_ts) + tau_d
+    step_ts, _ = _step_times(jnp.asarray(jumps), tau_d)
+    inside = jumps[jumps < TS[-1]]
+    assert inside.size > 60
+    landed = np.isin(np.nextafter(inside, np.inf), step_ts)
+    assert landed.all(), f"jump times not stepped onto: {inside[~landed]}"
+    # and no step ends on a jump time itself
+    assert not np.isin(inside, step_ts).any()
+
+
+def test_unreached_and_repeated_jump_times_change_nothing():
+    """Padding beyond the end, a jump time listed twice (the binary-search fallback of
+    the index hint) and an unsorted array all give the same steps."""
+    jumps = np.asarray(INPUTS.jump_ts)
+    step_ts, n = _step_times(jnp.asarray(jumps))
+    padded = np.concatenate([jumps, np.full(5000, 1e6), TS[-1] + np.arange(1.0, 100.0)])
+    repeated = np.sort(np.concatenate([jumps, jumps[::3]]))
+    shuffled = np.random.default_rng(0).permutation(jumps)
+    for other in (padded, repeated, shuffled):
+        s, m = _step_times(jnp.asarray(other))
+        assert m == n
+        np.testing.assert_array_equal(s, step_ts)
+
+
+def test_controller_state_does_not_carry_the_jump_times():
+    controller = JumpStepSizeController(_pid(), INPUTS.jump_ts).wrap(jnp.asarray(1))
+    y0 = _simulate.initial_state(jl.Plant(), (), INPUTS)
+    term = diffrax.ODETerm(_simulate._vector_field)
+    _, state = controller.init(
+        term, 0.0, TS[-1], y0, None, (jl.Plant(), (), INPUTS), diffrax.Tsit5().func, 5
+    )
+    sizes = [np.size(x) for x in jax.tree_util.tree_leaves(state)]
+    assert max(sizes) == 1
+
+
+def test_backwards_in_time_matches_clip():
+    """``wrap(-1)`` (a solve from t1 down to t0), on a toy ODE driven by the same
+    zero-order-held input."""
+    ts, pwm = jnp.asarray(TS), jnp.asarray(PWM)
+
+    def field(t, y, args):
+        i = jnp.clip(jnp.searchsorted(ts, t, side="right") - 1, 0, ts.size - 1)
+        return -y + pwm[i]
+
+    def solve(controller):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(field),
+            diffrax.Tsit5(),
+            t0=TS[-1],
+            t1=0.0,
+            dt0=None,
+            y0=jnp.asarray(0.3),
+            saveat=diffrax.SaveAt(steps=True),
+            stepsize_controller=controller,
+            max_steps=4096,
+        )
+        return np.asarray(sol.ts), np.asarray(sol.ys)
+
+    pid = diffrax.PIDController(rtol=1e-8, atol=1e-10)
+    t_new, y_new = solve(JumpStepSizeController(pid, INPUTS.jump_ts))
+    t_clip, y_clip = solve(diffrax.ClipStepSizeController(pid, jump_ts=INPUTS.jump_ts))
+    np.testing.assert_array_equal(t_new, t_clip)
+    np.testing.assert_array_equal(y_new, y_clip)
+    inside = np.asarray(INPUTS.jump_ts)
+    assert np.isin(np.nextafter(-inside, np.inf), -t_new[np.isfinite(t_new)]).all()
+
+
+def test_vmap_over_delays():
+    """Batched delays shift batched jump times (``inputs.jump_ts + delay``). The
+    vmapped solve equals the vmapped solve through diffrax's controller, and each
+    member equals its unbatched run to within the solver tolerance (vmapped and single
+    solves are compiled differently, so steps may differ in the last bits; measured
+    ~1e-6 m for one member, with diffrax's controller alike)."""
+    taus = jnp.asarray([0.0, 0.05, 0.137])
+
+    def run(tau):
+        return jl.simulate(jl.Plant(), _delay(tau), INPUTS, rtol=RTOL).height
+
+    def run_with(kind):
+        def run(tau):
+            return _solve(kind, jl.Plant(), _delay(tau), INPUTS, INPUTS.jump_ts + tau)[1][:, 0]
+
+        return eqx.filter_vmap(run)(taus)
+
+    batched = eqx.filter_vmap(run)(taus)
+    np.testing.assert_allclose(batched, run_with("clip"), rtol=0, atol=1e-12)
+    for i, tau in enumerate(taus):
+        np.testing.assert_allclose(batched[i], run(tau), rtol=0, atol=1e-5)
+    assert float(jnp.max(jnp.abs(batched[0] - batched[2]))) > 1e-2  # members differ
+
+
+def test_jacfwd_matches_clip_reverse_mode_and_finite_differences():
+    """d(height)/d(log beta, tau_d): forward mode (``ForwardMode``) through the new
+    controller equals forward mode through diffrax's, and reverse mode; the tau_d
+    column (which flows only through the step ends at the shifted jump times) is
+    non-zero and matches central finite differences. At a tight tolerance (rtol 1e-10),
+    so that the finite differences are not dominated by the solver's error."""
+    rtol = 1e-10
+    theta0 = jnp.asarray([np.log(1.2e9), 0.08])
+
+    def heights(theta, kind, adjoint):
+        plant, effects = jl.with_params(
+            jl.Plant(), _delay(0.0), {"beta": jnp.exp(theta[0]), "tau_d": theta[1]}
+        )
+        jump_ts = INPUTS.jump_ts + theta[1]
+        sol = _solve(kind, plant, effects, INPUTS, jump_ts, adjoint=adjoint, rtol=rtol)
+        return sol[1][:, 0]
+
+    fwd = diffrax.ForwardMode()
+    jac_new = jax.jacfwd(lambda th: heights(th, "new", fwd))(theta0)
+    jac_clip = jax.jacfwd(lambda th: heights(th, "clip", fwd))(theta0)
+    np.testing.assert_allclose(jac_new, jac_clip, rtol=1e-10, atol=1e-14)
+    jac_rev = jax.jacrev(lambda th: heights(th, "new", None))(theta0)
+    np.testing.assert_allclose(jac_new, jac_rev, rtol=1e-8, atol=1e-12)
+
+    d_tau = np.asarray(jac_new[:, 1])
+    assert np.max(np.abs(d_tau)) > 0.03  # m/s (-speed): the lift starts later by tau_d
+    h = 1e-6
+    fd = (
+        np.asarray(heights(theta0.at[1].add(h), "new", fwd))
+        - np.asarray(heights(theta0.at[1].add(-h), "new", fwd))
+    ) / (2 * h)
+    np.testing.assert_allclose(d_tau, fd, rtol=0, atol=1e-4 * np.max(np.abs(fd)))
+
+
+def test_through_simulate_with_jacfwd():
+    """The library path: ``jl.simulate`` with ``ForwardMode`` under ``jax.jacfwd``."""
+
+    def height_mid_lift(tau):
+        effects = _delay(tau)
+        sol = jl.simulate(jl.Plant(), effects, INPUTS, rtol=RTOL, adjoint=diffrax.ForwardMode())
+        return sol.height[200]  # t = 2 s
+
+    d = jax.jacfwd(height_mid_lift)(jnp.asarray(0.1))
+    assert np.isfinite(float(d)) and float(d) != 0.0
+
+
+def test_rejects_bad_arguments():
+    with pytest.raises(ValueError, match="adaptive"):
+        JumpStepSizeController(diffrax.ConstantStepSize(), INPUTS.jump_ts)
+    with pytest.raises(ValueError, match="floating"):
+        JumpStepSizeController(_pid(), jnp.arange(3))
+    with pytest.raises(ValueError, match="1-D"):
+        JumpStepSizeController(_pid(), jnp.zeros((2, 2)))
