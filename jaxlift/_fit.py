@@ -501,22 +501,25 @@ def _finish(plant0, effs, experiments, free, values, initial, stages) -> FitResu
             for i, info in enumerate(problem.infos)
         ]
     )
-    J_phys = J / dx[None, :]
     n, p = J.shape
     chi2 = float(r @ r)
     s2 = chi2 / max(n - p, 1)
     rho1 = _pooled_rho1(r, [e.n_residuals for e in experiments], experiments)
     inflation = (1 + rho1) / max(1 - rho1, 1e-3)
-    scale = np.sqrt(np.sum(J_phys**2, axis=0))
-    scale = np.where(scale > 0, scale, 1.0)
-    Js = J_phys / scale
-    U, S, Vt = np.linalg.svd(Js, full_matrices=False)
+    # covariance in the unconstrained coordinates (columns scaled for the SVD), then to
+    # physical units by the delta method: cov_x = D cov_theta D, D = dx/dtheta. Working in
+    # theta avoids dividing by dx, which vanishes for a parameter driven to its bound.
+    J = np.where(np.isfinite(J), J, 0.0)
+    col = np.sqrt(np.sum(J**2, axis=0))
+    no_info = col <= 1e-12 * max(float(col.max(initial=0.0)), 1e-300)
+    col = np.where(no_info, 1.0, col)
+    U, S, Vt = np.linalg.svd(J / col, full_matrices=False)
     cutoff = S[0] * 1e-8 if S.size else 0.0
     keep = S > cutoff
     inv_s2 = np.zeros_like(S)
     inv_s2[keep] = 1.0 / S[keep] ** 2
-    cov_s = (Vt.T * inv_s2) @ Vt
-    cov = cov_s / np.outer(scale, scale) * s2
+    cov_theta = ((Vt.T * inv_s2) @ Vt) / np.outer(col, col) * s2
+    cov = cov_theta * np.outer(dx, dx)
     se_white = np.sqrt(np.maximum(np.diag(cov), 0.0))
     se = se_white * math.sqrt(inflation)
     d = np.where(se_white > 0, se_white, 1.0)
@@ -524,7 +527,16 @@ def _finish(plant0, effs, experiments, free, values, initial, stages) -> FitResu
     undetermined = {}
     for k, name in enumerate(free):
         val = values[name]
-        if S.size and np.any((S <= cutoff) & (np.abs(Vt[:, k]) > 0.3)):
+        info = infos[name]
+        ref = abs(info.nominal) or (info.scale or 1.0)
+        if no_info[k]:
+            undetermined[name] = "the data carry no information on it here"
+        elif info.transform == "log" and val - info.lower < 1e-3 * ref:
+            undetermined[name] = (
+                f"driven to its lower bound {info.lower:g} {info.unit}; its standard "
+                "error there means nothing"
+            )
+        elif S.size and np.any((S <= cutoff) & (np.abs(Vt[:, k]) > 0.3)):
             undetermined[name] = "in a direction the data do not constrain (singular Jacobian)"
         elif val != 0 and se[k] / abs(val) > 0.5:
             undetermined[name] = f"relative standard error {se[k] / abs(val):.0%} > 50 %"

@@ -76,3 +76,18 @@ def test_parameter_recovery_from_nominal_start():
     prod = res.params["cf_out"] * res.params["cf_in"] ** 5
     assert abs(prod / (TRUTH["cf_out"] * TRUTH["cf_in"] ** 5) - 1) < 0.05
     assert "beta" not in res.undetermined and "k1" not in res.undetermined
+
+
+def test_effect_parameter_pushed_towards_its_bound():
+    """Data without leakage, leakage free: C_L goes towards its bound 0 (log transform);
+    the fit must not crash on the vanishing derivative there, and the estimate must not
+    claim leakage (zero within three standard errors, or C_L named undetermined)."""
+    plant, _ = jl.with_params(jl.Plant(), (), TRUTH)
+    ts, pwm = ramped_sequence([(0.0, 2.0), (0.3, 4.0), (0.0, 6.0)])
+    inputs = jl.Inputs.from_arrays(ts, pwm, np.full_like(ts, 800.0), 0.5)
+    sol = jl.simulate(plant, (), inputs, rtol=1e-8, atol=(1e-9, 1e-9, 1e-2))
+    log = jl.to_log(sol, inputs, jl.MeasurementModel(), _key(5), name="short")
+    res = fit([log], effects="leakage", free="C_L", init={**TRUTH, "C_L": 1e-13}, n_starts=1)
+    assert np.isfinite(res.chi2) and np.all(np.isfinite(res.corr))
+    assert res.params["C_L"] < 1e-14  # a tenth of a typical leakage
+    assert "C_L" in res.undetermined or res.params["C_L"] - 3 * res.stderr["C_L"] < 0

