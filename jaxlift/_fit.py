@@ -176,17 +176,35 @@ class _Problem:
     free: tuple[str, ...]
     infos: tuple[ParamInfo, ...]
     sim_max_steps: int = 40_000
+    fit_x0: bool = True
 
-    def to_theta(self, values: Mapping[str, float]) -> Float[Array, " P"]:
-        return jnp.stack([to_unconstrained(i, values[i.name]) for i in self.infos])
+    @property
+    def n_x0(self) -> int:
+        """Number of initial-height offsets (one per log) appended to ``theta``."""
+        return len(self.experiments) if self.fit_x0 else 0
+
+    def to_theta(self, values: Mapping[str, float], x0_mm=None) -> Float[Array, " P"]:
+        th = jnp.stack([to_unconstrained(i, values[i.name]) for i in self.infos])
+        x0 = np.zeros(self.n_x0) if x0_mm is None else np.asarray(x0_mm, dtype=float)
+        return jnp.concatenate([th, jnp.asarray(x0[: self.n_x0], dtype=jnp.float64)])
+
+    def x0_mm(self, theta) -> np.ndarray:
+        return np.asarray(theta)[len(self.infos) :]
 
     def to_values(self, theta) -> dict[str, Float[Array, ""]]:
         return {i.name: from_unconstrained(i, theta[k]) for k, i in enumerate(self.infos)}
 
     def residual_fn(self) -> Callable:
+        p = len(self.infos)
+
         def fn(theta, args):
             plant, effects, experiments = args
             plant, effects = with_params(plant, effects, self.to_values(theta))
+            if self.fit_x0:  # initial height of each log: a nuisance parameter, in mm
+                experiments = tuple(
+                    eqx.tree_at(lambda e: e.inputs.x0, exp, exp.inputs.x0 + 1e-3 * theta[p + k])
+                    for k, exp in enumerate(experiments)
+                )
             rs = residuals(
                 plant,
                 effects,
@@ -219,10 +237,12 @@ def _start_box(info: ParamInfo, value: float) -> tuple[float, float]:
     return lo, hi
 
 
-def _starts(problem: _Problem, init: Mapping[str, float], n: int, seed: int) -> np.ndarray:
+def _starts(
+    problem: _Problem, init: Mapping[str, float], n: int, seed: int, x0_mm=None
+) -> np.ndarray:
     """``n`` starting points (unconstrained): ``init`` first, then a Latin hypercube of the
     start box (log-uniform for one-signed boxes), from ``seed``."""
-    theta0 = np.asarray(problem.to_theta(init))
+    theta0 = np.asarray(problem.to_theta(init, x0_mm))
     if n <= 1:
         return theta0[None, :]
     rng = np.random.default_rng(seed)
@@ -240,7 +260,7 @@ def _starts(problem: _Problem, init: Mapping[str, float], n: int, seed: int) -> 
             else:
                 v = lo + row[k] * (hi - lo)
             vals[info.name] = v
-        pts.append(np.asarray(problem.to_theta(vals)))
+        pts.append(np.asarray(problem.to_theta(vals, x0_mm)))
     return np.stack(pts)
 
 
@@ -272,6 +292,10 @@ class FitResult:
         chi2_per_log: ``{log name: chi2 / n}``.
         stderr: ``{name: standard error}`` (physical units), AR(1)-inflated.
         corr: correlation matrix of the free parameters (order of ``free``).
+        x0_offsets: ``{log name: offset}`` [m] of each log's initial height from the
+            mean over its initial hold, estimated with the parameters (a nuisance
+            parameter: 0.5 mm sensor noise over a 2 s hold leaves a ~0.04 mm error that
+            the data see and no physical parameter can absorb).
         rho1: lag-1 autocorrelation of the residuals; ``inflation`` = (1+rho1)/(1-rho1).
         undetermined: free parameters the data cannot determine (relative standard
             error > 50 % or singular direction), with the reason.
@@ -288,6 +312,7 @@ class FitResult:
     stderr: dict[str, float]
     stderr_white: dict[str, float]
     corr: np.ndarray
+    x0_offsets: dict[str, float]
     rho1: float
     inflation: float
     undetermined: dict[str, str]
@@ -417,6 +442,7 @@ def fit(
     initial = dict(values)
     infos_all = all_param_infos(effs)
     stages: list[StageResult] = []
+    x0_mm = np.zeros(len(experiments))  # initial-height offsets, estimated with the rest
     for k, names in enumerate(stage_sets):
         plant_k, effs_k = with_params(plant0, effs, values)  # the current estimate
         problem = _Problem(
@@ -424,7 +450,7 @@ def fit(
         )
         # keep the starting values strictly inside the bounds (logit/log transforms)
         start_vals = {n: _inside(infos_all[n], values[n]) for n in names}
-        starts = _starts(problem, start_vals, n_starts, seed + k)
+        starts = _starts(problem, start_vals, n_starts, seed + k, x0_mm)
         t0 = time.perf_counter()
         thetas, codes, nsteps, chi2s = _lm_solve(
             problem,
@@ -442,6 +468,7 @@ def fit(
         wall = time.perf_counter() - t0
         for n, v in problem.to_values(thetas[best]).items():
             values[n] = float(v)
+        x0_mm = problem.x0_mm(thetas[best])
         msg = "converged" if ok[best] else _lm_message(int(codes[best]))
         stages.append(
             StageResult(
@@ -463,7 +490,7 @@ def fit(
             )
 
     plant_f, effs_f = with_params(plant0, effs, values)
-    return _finish(plant_f, effs_f, experiments, free_all, values, initial, stages)
+    return _finish(plant_f, effs_f, experiments, free_all, values, initial, stages, x0_mm)
 
 
 def _lm_message(code: int) -> str:
@@ -486,10 +513,10 @@ def _inside(info: ParamInfo, v: float) -> float:
     return v
 
 
-def _finish(plant0, effs, experiments, free, values, initial, stages) -> FitResult:
+def _finish(plant0, effs, experiments, free, values, initial, stages, x0_mm) -> FitResult:
     infos = all_param_infos(effs)
     problem = _Problem(plant0, effs, tuple(experiments), tuple(free), tuple(infos[n] for n in free))
-    theta = problem.to_theta(values)
+    theta = problem.to_theta(values, x0_mm)
     fn = problem.residual_fn()
     jac_fn = eqx.filter_jit(jax.jacfwd(fn))
     r = np.asarray(eqx.filter_jit(fn)(theta, problem.args))
@@ -500,6 +527,7 @@ def _finish(plant0, effs, experiments, free, values, initial, stages) -> FitResu
             float(jax.grad(from_unconstrained, argnums=1)(info, theta[i]))
             for i, info in enumerate(problem.infos)
         ]
+        + [1e-3] * problem.n_x0  # initial-height offsets: theta in mm
     )
     n, p = J.shape
     chi2 = float(r @ r)
@@ -523,7 +551,9 @@ def _finish(plant0, effs, experiments, free, values, initial, stages) -> FitResu
     se_white = np.sqrt(np.maximum(np.diag(cov), 0.0))
     se = se_white * math.sqrt(inflation)
     d = np.where(se_white > 0, se_white, 1.0)
-    corr = cov / np.outer(d, d)
+    q = len(free)  # the physical parameters; the initial-height offsets follow them
+    corr = (cov / np.outer(d, d))[:q, :q]
+    x0_off = {e.name: 1e-3 * float(v) for e, v in zip(experiments, problem.x0_mm(theta))}
     undetermined = {}
     for k, name in enumerate(free):
         val = values[name]
@@ -559,6 +589,7 @@ def _finish(plant0, effs, experiments, free, values, initial, stages) -> FitResu
         stderr={name: float(se[k]) for k, name in enumerate(free)},
         stderr_white={name: float(se_white[k]) for k, name in enumerate(free)},
         corr=corr,
+        x0_offsets=x0_off,
         rho1=rho1,
         inflation=inflation,
         undetermined=undetermined,

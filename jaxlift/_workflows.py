@@ -12,6 +12,7 @@ import math
 import pathlib
 from collections.abc import Callable, Mapping, Sequence
 
+import equinox as eqx
 import numpy as np
 
 from . import _analysis as an
@@ -27,16 +28,23 @@ __all__ = ["simulate_logs", "run_fit", "fit_report"]
 
 
 def simulate_logs(
-    params: Mapping[str, float], effects: Sequence[str], logs: Sequence[Log]
+    params: Mapping[str, float],
+    effects: Sequence[str],
+    logs: Sequence[Log],
+    x0_offsets: Mapping[str, float] | None = None,
 ) -> list[dict[str, np.ndarray]]:
     """Simulate every log's input with the given model; arrays at the log's times.
+    ``x0_offsets`` [m] shift the initial height of the named logs (a fit's estimates).
     Raises :class:`~jaxlift.SimulationError` if a simulation fails."""
     effs = make_effects(effects)
     own = {k: v for k, v in params.items() if k in all_param_infos(effs)}
     plant, effs = with_params(Plant(), effs, own)
     out = []
     for log in logs:
-        sol = simulate(plant, effs, Inputs.from_log(log))
+        inputs = Inputs.from_log(log)
+        off = (x0_offsets or {}).get(log.name, 0.0)
+        inputs = eqx.tree_at(lambda i: i.x0, inputs, inputs.x0 + off)
+        sol = simulate(plant, effs, inputs)
         sol.check(f"simulating {log.path or log.name}")
         out.append(
             {
@@ -128,7 +136,9 @@ def run_fit(
         "logs": {},
     }
     before_all = simulate_logs(result.initial, result.effects, [*fit_logs, *validate_logs])
-    after_all = simulate_logs(result.params, result.effects, [*fit_logs, *validate_logs])
+    after_all = simulate_logs(
+        result.params, result.effects, [*fit_logs, *validate_logs], result.x0_offsets
+    )
     for i, log in enumerate([*fit_logs, *validate_logs]):
         role = "fitted" if i < len(fit_logs) else "held_out"
         metrics["logs"][log.name] = {

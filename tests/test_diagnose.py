@@ -58,7 +58,7 @@ def clean():
     return logs, base
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_screen_ranks_hidden_leakage_first(leaky):
     logs, base = leaky
     ranking = screen_effects(base, logs)
@@ -66,14 +66,14 @@ def test_screen_ranks_hidden_leakage_first(leaky):
     assert ranking[0].z > 5
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_screen_finds_nothing_when_nothing_is_hidden(clean):
     logs, base = clean
     ranking = screen_effects(base, logs)
     assert all(s.z < 3 for s in ranking), [(s.effect, s.z) for s in ranking]
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_verdict_leakage_and_error_falls(leaky):
     logs, base = leaky
     held_out = _logs({"C_L": 2e-13}, effects=("leakage",), seeds=(7, 8))[1:]
@@ -85,7 +85,7 @@ def test_verdict_leakage_and_error_falls(leaky):
     assert abs(top.fitted_params["C_L"] / 2e-13 - 1) < 0.2
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_verdict_none_when_nothing_is_hidden(clean):
     logs, base = clean
     d = diagnose(logs, base=base)
