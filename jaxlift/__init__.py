@@ -10,7 +10,7 @@ The public surface. Enable float64 at the start of your program::
     sol = jl.simulate(jl.Plant(), jl.make_effects("hose_compliance"), jl.Inputs.from_log(log))
 """
 
-from ._effects import EFFECTS, AbstractEffect, Signals
+from ._effects import EFFECTS, AbstractEffect, AbstractStatelessEffect, Signals
 from ._effects.entrained_air import EntrainedAir
 from ._effects.hose_compliance import HoseCompliance
 from ._effects.input_delay import InputDelay
@@ -42,6 +42,7 @@ __version__ = "0.1.0"
 __all__ = [
     "EFFECTS",
     "AbstractEffect",
+    "AbstractStatelessEffect",
     "EntrainedAir",
     "HoseCompliance",
     "InputDelay",

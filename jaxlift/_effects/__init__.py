@@ -6,7 +6,7 @@ To add an effect: write ``jaxlift/_effects/my_effect.py`` with a subclass of
 
 from __future__ import annotations
 
-from ._base import AbstractEffect, Signals, rigid_acceleration
+from ._base import AbstractEffect, AbstractStatelessEffect, Signals, rigid_acceleration
 from .entrained_air import EntrainedAir
 from .hose_compliance import HoseCompliance
 from .input_delay import InputDelay
@@ -32,4 +32,4 @@ EFFECTS: dict[str, type[AbstractEffect]] = {
     )
 }
 
-__all__ = ["AbstractEffect", "Signals", "EFFECTS", "rigid_acceleration"]
+__all__ = ["AbstractEffect", "AbstractStatelessEffect", "Signals", "EFFECTS", "rigid_acceleration"]

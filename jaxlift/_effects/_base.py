@@ -24,7 +24,7 @@ effect would make adding a hook touch every effect. The abstract parts an effect
 from __future__ import annotations
 
 import abc
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -107,3 +107,15 @@ def rigid_acceleration(plant: Plant, sig: Signals) -> Scalar:
     """Baseline fork-and-load law: ``M a = F - M g`` with ``M = m_load + m_st(x)``."""
     mass = sig.m_load + plant.stage_mass(sig.x)
     return sig.forces / mass - G
+
+
+class AbstractStatelessEffect(AbstractEffect):
+    """An effect without states of its own that keeps the rigid fork-and-load law
+    (most effects): fills in the state-related parts of :class:`AbstractEffect`."""
+
+    state_names: ClassVar[tuple[str, ...]] = ()
+    state_scales: ClassVar[tuple[float, ...]] = ()
+    overrides_acceleration: ClassVar[bool] = False
+
+    def initial_state(self, plant: Plant, sig: Signals) -> Vector:
+        return jnp.zeros((0,))

@@ -20,10 +20,10 @@ import jax.numpy as jnp
 
 from .._params import param
 from .._plant import P_ATM
-from ._base import AbstractEffect, Scalar, Signals
+from ._base import AbstractStatelessEffect, Scalar, Signals
 
 
-class EntrainedAir(AbstractEffect):
+class EntrainedAir(AbstractStatelessEffect):
     """Compliance of undissolved air, falling with the square of pressure."""
 
     alpha0: Scalar = param(
@@ -31,12 +31,6 @@ class EntrainedAir(AbstractEffect):
     )
 
     name: ClassVar[str] = "entrained_air"
-    state_names: ClassVar[tuple[str, ...]] = ()
-    state_scales: ClassVar[tuple[float, ...]] = ()
-    overrides_acceleration: ClassVar[bool] = False
-
-    def initial_state(self, plant, sig):
-        return jnp.zeros((0,))
 
     def extra_capacitance(self, plant, z, sig: Signals, volume):
         p_abs = jnp.maximum(sig.p + P_ATM, 0.1 * P_ATM)  # no gas law below vacuum

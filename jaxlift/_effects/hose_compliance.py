@@ -8,13 +8,11 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-import jax.numpy as jnp
-
 from .._params import param
-from ._base import AbstractEffect, Scalar, Signals
+from ._base import AbstractStatelessEffect, Scalar, Signals
 
 
-class HoseCompliance(AbstractEffect):
+class HoseCompliance(AbstractStatelessEffect):
     """Constant extra hydraulic capacitance."""
 
     C_h: Scalar = param(
@@ -22,12 +20,6 @@ class HoseCompliance(AbstractEffect):
     )
 
     name: ClassVar[str] = "hose_compliance"
-    state_names: ClassVar[tuple[str, ...]] = ()
-    state_scales: ClassVar[tuple[float, ...]] = ()
-    overrides_acceleration: ClassVar[bool] = False
-
-    def initial_state(self, plant, sig):
-        return jnp.zeros((0,))
 
     def extra_capacitance(self, plant, z, sig: Signals, volume):
         return self.C_h

@@ -12,24 +12,16 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-import jax.numpy as jnp
-
 from .._params import param
-from ._base import AbstractEffect, Scalar
+from ._base import AbstractStatelessEffect, Scalar
 
 
-class InputDelay(AbstractEffect):
+class InputDelay(AbstractStatelessEffect):
     """Pure time delay of the commanded duty cycle."""
 
     tau_d: Scalar = param(0.0, "s", 0.0, 2.0, "input dead time", nesting=0.0, scale=0.05)
 
     name: ClassVar[str] = "input_delay"
-    state_names: ClassVar[tuple[str, ...]] = ()
-    state_scales: ClassVar[tuple[float, ...]] = ()
-    overrides_acceleration: ClassVar[bool] = False
-
-    def initial_state(self, plant, sig):
-        return jnp.zeros((0,))
 
     def delay(self):
         return self.tau_d

@@ -8,13 +8,11 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-import jax.numpy as jnp
-
 from .._params import param
-from ._base import AbstractEffect, Scalar, Signals
+from ._base import AbstractStatelessEffect, Scalar, Signals
 
 
-class Leakage(AbstractEffect):
+class Leakage(AbstractStatelessEffect):
     """Laminar leakage flow proportional to pressure."""
 
     C_L: Scalar = param(
@@ -22,12 +20,6 @@ class Leakage(AbstractEffect):
     )
 
     name: ClassVar[str] = "leakage"
-    state_names: ClassVar[tuple[str, ...]] = ()
-    state_scales: ClassVar[tuple[float, ...]] = ()
-    overrides_acceleration: ClassVar[bool] = False
-
-    def initial_state(self, plant, sig):
-        return jnp.zeros((0,))
 
     def extra_flow(self, plant, z, sig: Signals):
         return -self.C_L * sig.p

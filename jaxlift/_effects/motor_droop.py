@@ -8,13 +8,11 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-import jax.numpy as jnp
-
 from .._params import param
-from ._base import AbstractEffect, Scalar, Signals
+from ._base import AbstractStatelessEffect, Scalar, Signals
 
 
-class MotorDroop(AbstractEffect):
+class MotorDroop(AbstractStatelessEffect):
     """Motor speed falling linearly with line pressure."""
 
     kappa: Scalar = param(
@@ -22,12 +20,6 @@ class MotorDroop(AbstractEffect):
     )
 
     name: ClassVar[str] = "motor_droop"
-    state_names: ClassVar[tuple[str, ...]] = ()
-    state_scales: ClassVar[tuple[float, ...]] = ()
-    overrides_acceleration: ClassVar[bool] = False
-
-    def initial_state(self, plant, sig):
-        return jnp.zeros((0,))
 
     def motor_offset(self, plant, z, sig: Signals):
         return -self.kappa * sig.p

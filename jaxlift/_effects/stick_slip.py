@@ -13,10 +13,10 @@ from typing import ClassVar
 import jax.numpy as jnp
 
 from .._params import param
-from ._base import AbstractEffect, Scalar, Signals
+from ._base import AbstractStatelessEffect, Scalar, Signals
 
 
-class StickSlip(AbstractEffect):
+class StickSlip(AbstractStatelessEffect):
     """Stribeck-like breakaway friction near zero speed."""
 
     dFs: Scalar = param(
@@ -25,12 +25,6 @@ class StickSlip(AbstractEffect):
     v_s: Scalar = param(0.01, "m/s", 1e-4, 0.2, "Stribeck speed of the breakaway term")
 
     name: ClassVar[str] = "stick_slip"
-    state_names: ClassVar[tuple[str, ...]] = ()
-    state_scales: ClassVar[tuple[float, ...]] = ()
-    overrides_acceleration: ClassVar[bool] = False
-
-    def initial_state(self, plant, sig):
-        return jnp.zeros((0,))
 
     def extra_friction(self, plant, z, sig: Signals):
         v = sig.v
