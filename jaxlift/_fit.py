@@ -320,7 +320,9 @@ class FitResult:
 
     @property
     def converged(self) -> bool:
-        return all(s.converged for s in self.stages)
+        """Whether the final stage converged (earlier stages of a staged fit only
+        prepare its start; their status is in ``stages``)."""
+        return self.stages[-1].converged
 
     def model(self) -> tuple[Plant, tuple[AbstractEffect, ...]]:
         """The calibrated plant and effects."""
@@ -495,7 +497,15 @@ def fit(
 
 def _lm_message(code: int) -> str:
     """Text of an optimistix result code."""
-    for member in ("max_steps_reached", "nonlinear_divergence", "nonfinite_input"):
+    for member in (
+        "max_steps_reached",
+        "nonlinear_divergence",
+        "nonfinite_input",
+        "nonlinear_max_steps_reached",
+        "singular",
+        "breakdown",
+        "stagnation",
+    ):
         res = getattr(optx.RESULTS, member, None)
         if res is not None and int(res._value) == code:
             return member.replace("_", " ")
