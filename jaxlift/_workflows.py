@@ -447,7 +447,6 @@ def run_diagnose(
         error_rows.append(row)
     _plot_error_steps(error_rows, figs / "error_by_step.png")
     first = steps[0]
-    final = steps[-1]
     verdicts = [d.verdict for d in steps if d.verdict != "none"]
     data = {
         "verdict": first.verdict,
@@ -544,7 +543,6 @@ def run_diagnose(
         json.dump(_finite(data), fh, indent=2)
         fh.write("\n")
     rep.write(out)
-    del final
     return steps
 
 
