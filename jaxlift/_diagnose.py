@@ -39,7 +39,7 @@ from ._effects import EFFECTS
 from ._fit import FitResult, _Problem, fit, make_experiments
 from ._log import Log
 from ._model import all_param_infos, with_params
-from ._plant import Plant
+from ._plant import PLANT_PARAMS, Plant
 from ._simulate import make_effects
 
 __all__ = ["EffectScreen", "Diagnosis", "screen_effects", "diagnose", "diagnose_iteratively"]
@@ -128,7 +128,7 @@ def screen_effects(
         step = secant_fraction * (info.scale or 1.0)
         effs = make_effects([*base.effects, name], {par: step})
         _, effs = with_params(
-            plant, effs, {k: v for k, v in base.params.items() if k not in plant_params()}
+            plant, effs, {k: v for k, v in base.params.items() if k not in PLANT_PARAMS}
         )
         prob_e = dataclasses.replace(problem, effects=effs)  # same theta, effect switched on
         rs = np.asarray(eqx.filter_jit(prob_e.residual_fn())(theta, prob_e.args))
@@ -148,12 +148,6 @@ def screen_effects(
             psi = max(score, 0.0) / gg  # one Gauss-Newton step from the nesting value
         out.append(EffectScreen(name, par, z, _norm_sf(z), drop, psi))
     return sorted(out, key=lambda s: -s.z)
-
-
-def plant_params() -> set[str]:
-    from ._plant import PLANT_PARAMS
-
-    return set(PLANT_PARAMS)
 
 
 def _bic(chi2: float, k: int, n: int, infl: float) -> float:

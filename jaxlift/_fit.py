@@ -357,10 +357,12 @@ def _lm_solve(
         return sol.value, sol.result, sol.stats["num_steps"], jnp.sum(r**2)
 
     if vectorize:
-        out = _jit_vmap(one)(jnp.asarray(theta_starts), problem.args)
+        out = eqx.filter_jit(jax.vmap(one, in_axes=(0, None)))(
+            jnp.asarray(theta_starts), problem.args
+        )
         value, result, steps, chi2 = out
         return np.asarray(value), np.asarray(result._value), np.asarray(steps), np.asarray(chi2)
-    solve = _jit(one)
+    solve = eqx.filter_jit(one)
     outs = []
     bar = tqdm(theta_starts, desc=desc, unit="start", disable=not progress, leave=False)
     for th in bar:
@@ -374,14 +376,6 @@ def _lm_solve(
         np.asarray([o[2] for o in outs]),
         np.asarray([o[3] for o in outs]),
     )
-
-
-def _jit(f):
-    return eqx.filter_jit(f)
-
-
-def _jit_vmap(f):
-    return eqx.filter_jit(jax.vmap(f, in_axes=(0, None)))
 
 
 def fit(
