@@ -231,9 +231,25 @@ def signals_and_derivative(
     t, y, plant: Plant, effects: tuple[AbstractEffect, ...], inputs: Inputs
 ) -> tuple[Signals, Float[Array, " S"]]:
     """Evaluate the chain of MODEL.md at ``(t, y)``: the signals and ``dy/dt``."""
-    (x, v, p), zs = _split(y, effects)
     delay = sum((e.delay() for e in effects), jnp.zeros(()))
     u, m_load = inputs.at(t - delay)
+    return plant_signals_and_derivative(t, y, plant, effects, u, m_load)
+
+
+def plant_signals_and_derivative(
+    t: Float[ArrayLike, ""],
+    y: Float[Array, " S"],
+    plant: Plant,
+    effects: tuple[AbstractEffect, ...],
+    u: Float[ArrayLike, ""],
+    m_load: Float[ArrayLike, ""],
+) -> tuple[Signals, Float[Array, " S"]]:
+    """The chain of MODEL.md at ``(t, y)`` for a given duty ``u`` [-] (as the motor sees
+    it, i.e. already delayed) and load ``m_load`` [kg]: the signals and ``dy/dt``.
+
+    ``effects`` must be in registry order (see ``_canonical``). This is the building
+    block of closed-loop simulation, where ``u`` comes from a controller."""
+    (x, v, p), zs = _split(y, effects)
     zero = jnp.zeros(())
     sig = Signals(t=t, x=x, v=v, p=p, u=u, m_load=m_load, omega_ss=zero, a=zero, forces=zero)
 
