@@ -198,6 +198,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=cmd_diagnose)
+
+    from jaxlift._control_cli import add_parsers as add_control_parsers
+    from jaxlift._posterior_cli import add_parsers as add_posterior_parsers
+
+    add_posterior_parsers(sub)  # jaxlift posterior
+    add_control_parsers(sub)  # jaxlift tune, jaxlift control simulate
     return parser
 
 

@@ -1,0 +1,9 @@
+"""Command line: ``jaxlift tune`` and ``jaxlift control simulate`` (being written; see the open issue)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    """Add this module's sub-commands to ``jaxlift``'s parser."""
