@@ -120,6 +120,10 @@ def run_fit(
         "stderr_inflation": result.inflation,
         "params": result.params,
         "stderr": result.stderr,
+        "correlation": {
+            "names": result.free,
+            "matrix": [[_finite(c) for c in row] for row in np.asarray(result.corr)],
+        },
         "undetermined": result.undetermined,
         "stages": [
             {
