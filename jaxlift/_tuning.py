@@ -1,0 +1,657 @@
+"""Gain tuning by gradient through the closed-loop simulation, robustness over
+parameter draws, and closed-loop stability from eigenvalues.
+
+Tuning (:func:`tune_gains`): the cost of :func:`jaxlift._performance.cost_from_figures`
+summed over the references (loads), minimised with Adam (optax) in the log of the
+gains. A plain :class:`~jaxlift.PID` is tuned in ``log P, log I, log D, log N,
+log K_aw`` (any subset); a :class:`~jaxlift.ScheduledPID` in the log of its per-stage
+gains at the two scheduling loads 500 and 1500 kg (``log G_i(500), log G_i(1500)``,
+``G`` in ``P, I, D``, stage ``i``: 18 numbers, positive at both loads and linear in
+between, written back as ``G_b,i, G_m,i``), plus ``log N`` (and ``log K_aw``). A gain
+that starts at 0 is started at a small floor instead (``D``: 0.05, ``K_aw``: ``I/P``).
+
+Robust tuning: a batch of plants (posterior draws), evaluated with ``vmap``; the
+objective is ``mean + tail_weight * CVaR_alpha`` of the per-draw costs (CVaR: the mean
+of the worst ``ceil(alpha B)`` draws). A failed solve (solver failure, fork out of
+range, non-finite figure) costs ``FAILED_COST`` (finite, gradient 0) and is counted.
+
+Stability (:func:`stability_table`): the closed loop (continuous form) is linearised
+with ``jax.jacfwd`` at operating points -- height ``x`` frozen, steady motion at the
+reference speed (``v = v_ref``, force balance, ``q_I`` = the duty that delivers the
+flow, ``eta = 0``; found by Newton's method on the full vector field with ``x``
+frozen). The eigenvalues of the Jacobian of all states but ``x`` give the local
+stability (max real part < 0). "With noise": the sensor noise drives ``u_raw``
+through ``P`` and the derivative path; the saturation then passes small signals only
+while the noisy ``u_raw`` stays inside (0, 1). Its incremental (describing) gain
+``g = P(0 < u_ss + xi < 1)`` (Booton), estimated from the noise component ``xi`` of
+``u_raw`` on a fine time grid (2000 noise samples, fixed seed; continuous or sampled
+law), replaces the saturation's slope 1 in the linearisation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import time
+from collections.abc import Mapping, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jaxtyping import Array, Float
+
+from ._closed_loop import (
+    NOISE_POWER,
+    NOISE_TS,
+    ClosedLoopSolution,
+    Reference,
+    simulate_closed_loop,
+)
+from ._control import PID, SCHEDULE_MASSES, AbstractController, ScheduledPID
+from ._effects import AbstractEffect
+from ._model import all_param_infos, with_params
+from ._params import ParameterError, from_unconstrained, to_unconstrained
+from ._performance import CostWeights, Figures, cost_from_figures, figures
+from ._plant import Plant
+from ._simulate import Inputs, _canonical, _split, initial_state, plant_signals_and_derivative
+
+__all__ = [
+    "GainSpace",
+    "TuneResult",
+    "DrawSet",
+    "FAILED_COST",
+    "OSC_FREE_MPS",
+    "tune_gains",
+    "closed_loop_costs",
+    "robust_objective",
+    "parameter_draws",
+    "batch_models",
+    "evaluate_draws",
+    "closed_loop_eigenvalues",
+    "noise_describing_gain",
+    "stability_table",
+    "operating_points",
+]
+
+#: Cost of a run whose simulation failed (finite: no NaN in a batch; gradient 0).
+FAILED_COST = 1e4
+#: A run is "oscillation-free" when its sustained oscillation RMS is below this [m/s].
+OSC_FREE_MPS = 0.5e-3
+
+_FLOORS = {"D": 0.05, "K_aw": None, "N": 10.0, "P": 1.0, "I": 10.0}
+
+
+# ------------------------------------------------------------------ gain coordinates
+class GainSpace(eqx.Module):
+    """Log coordinates of the tuned gains of a controller (see the module docstring).
+
+    Attributes:
+        template: the controller whose untuned gains are kept.
+        names: coordinate names (``P``, ``I``, ... for a PID; ``P1@500``, ``P1@1500``,
+            ..., ``N``, ``K_aw`` for a scheduled PID).
+    """
+
+    template: AbstractController
+    names: tuple[str, ...] = eqx.field(static=True)
+
+    @classmethod
+    def for_controller(
+        cls, controller: AbstractController, names: Sequence[str] | None = None
+    ) -> GainSpace:
+        """Coordinates for ``controller``: ``names`` of the gains to tune (default: all
+        of P, I, D, N, K_aw for a PID; the 18 stage gains, N and K_aw for a scheduled
+        PID; give a subset to keep some fixed, e.g. without ``K_aw``)."""
+        if isinstance(controller, ScheduledPID):
+            stage = [f"{k}{i}@{m:g}" for i in (1, 2, 3) for k in "PID" for m in SCHEDULE_MASSES]
+            allowed = stage + ["N", "K_aw"]
+        else:
+            allowed = ["P", "I", "D", "N", "K_aw"]
+        names = tuple(allowed if names is None else names)
+        bad = [n for n in names if n not in allowed]
+        if bad:
+            raise ParameterError(f"cannot tune {bad}; tunable gains: {allowed}")
+        return cls(template=controller, names=names)
+
+    def _values(self, ctrl: AbstractController) -> dict[str, Array]:
+        out = {}
+        if isinstance(ctrl, ScheduledPID):
+            for m in SCHEDULE_MASSES:
+                g = ctrl.stage_gains(m)
+                for i in range(3):
+                    for j, k in enumerate("PID"):
+                        out[f"{k}{i + 1}@{m:g}"] = g[i, j]
+            out["N"], out["K_aw"] = ctrl.N, ctrl.K_aw
+        else:
+            out = {k: getattr(ctrl, k) for k in ("P", "I", "D", "N", "K_aw")}
+        return out
+
+    def to_theta(self, ctrl: AbstractController) -> Float[np.ndarray, " n"]:
+        """Log coordinates of ``ctrl``'s tuned gains (zeros raised to a floor)."""
+        vals = {k: float(np.asarray(v)) for k, v in self._values(ctrl).items()}
+        out = []
+        for n in self.names:
+            v = vals[n]
+            if v <= 0:
+                base = n.split("@")[0].rstrip("123")
+                if base == "K_aw":
+                    v = max(vals.get("I", 300.0) / max(vals.get("P", 20.0), 1e-3), 1.0)
+                else:
+                    v = _FLOORS[base]
+            out.append(math.log(v))
+        return np.asarray(out)
+
+    def from_theta(self, theta: Float[Array, " n"]) -> AbstractController:
+        """The controller with the tuned gains ``exp(theta)`` (jit/grad-safe)."""
+        vals = dict(self._values(self.template))
+        for i, n in enumerate(self.names):
+            vals[n] = jnp.exp(theta[i])
+        if isinstance(self.template, ScheduledPID):
+            g = [
+                jnp.asarray(
+                    [[vals[f"{k}{i}@{m:g}"] for k in "PID"] for i in (1, 2, 3)], dtype=jnp.float64
+                )
+                for m in SCHEDULE_MASSES
+            ]
+            return ScheduledPID.from_stage_gains(g[0], g[1], vals["N"], vals["K_aw"])
+        return self.template.with_gains({k: vals[k] for k in ("P", "I", "D", "N", "K_aw")})
+
+
+# ------------------------------------------------------------------ costs
+def _sanitize(sol: ClosedLoopSolution) -> ClosedLoopSolution:
+    """Non-finite entries (a failed solve) set to 0 so that the figures, and their
+    gradients, stay finite; the run is then discarded by its ``ok`` flag."""
+    fix = lambda a: jnp.where(jnp.isfinite(a), a, 0.0)
+    return eqx.tree_at(
+        lambda s: (s.ys, s.q_I, s.eta, s.u, s.u_int, s.shut_int, s.v_meas),
+        sol,
+        (fix(sol.ys), fix(sol.q_I), fix(sol.eta), fix(sol.u), fix(sol.u_int),
+         fix(sol.shut_int), fix(sol.v_meas)),
+    )  # fmt: skip
+
+
+def _run(ctrl, plant, effects, ref, sim_kw, weights):
+    sol = simulate_closed_loop(plant, effects, ctrl, ref, **sim_kw)
+    fig = figures(_sanitize(sol))
+    cost = cost_from_figures(fig, weights)
+    ok = sol.ok & jnp.isfinite(cost)
+    return jnp.where(ok, cost, FAILED_COST), ok, fig
+
+
+def closed_loop_costs(
+    controller: AbstractController,
+    plants: Plant,
+    effects: tuple[AbstractEffect, ...],
+    references: Reference,
+    *,
+    batched_plants: bool = False,
+    weights: CostWeights | None = None,
+    **sim_kw,
+) -> tuple[Float[Array, "B L"], Float[Array, "B L"], Figures]:
+    """Costs of ``controller`` on plants x references (loads): arrays ``(B, L)`` of
+    costs (``FAILED_COST`` for failed runs), success flags, and the figures.
+
+    ``references``: a stacked :class:`Reference` (leading axis ``L``, e.g. loads);
+    ``plants``/``effects``: one model, or stacked draws (leading axis ``B``) with
+    ``batched_plants=True``. ``sim_kw`` go to :func:`simulate_closed_loop`."""
+    run_ref = eqx.filter_vmap(
+        lambda p, e, r: _run(controller, p, e, r, sim_kw, weights), in_axes=(None, None, 0)
+    )
+    if batched_plants:
+        return eqx.filter_vmap(lambda p, e: run_ref(p, e, references))(plants, effects)
+    c, ok, fig = run_ref(plants, effects, references)
+    return c[None], ok[None], jax.tree.map(lambda a: a[None], fig)
+
+
+def robust_objective(
+    costs: Float[Array, " B"], alpha: float = 0.2, tail_weight: float = 1.0
+) -> Float[Array, ""]:
+    """``mean + tail_weight * CVaR_alpha`` of per-draw costs (CVaR: mean of the worst
+    ``ceil(alpha B)``)."""
+    k = max(1, math.ceil(alpha * costs.shape[0]))
+    worst = jnp.sort(costs)[-k:]
+    return jnp.mean(costs) + tail_weight * jnp.mean(worst)
+
+
+def stack_references(refs: Sequence[Reference]) -> Reference:
+    """Stack references of equal shape (e.g. one per load) along a new leading axis."""
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *refs)
+
+
+# ------------------------------------------------------------------ tuning
+@dataclasses.dataclass
+class TuneResult:
+    """Result of :func:`tune_gains`.
+
+    Attributes:
+        controller: the best controller seen (lowest objective).
+        initial: the starting controller.
+        initial_cost, best_cost: objective at the start and at the best step.
+        history: objective per step (before the step).
+        n_failed: failed runs in the batch at the best step.
+        n_evaluations: value-and-gradient evaluations.
+        wall_s: wall time including compilation [s].
+        names: the tuned coordinates.
+    """
+
+    controller: AbstractController
+    initial: AbstractController
+    initial_cost: float
+    best_cost: float
+    history: list[float]
+    n_failed: int
+    n_evaluations: int
+    wall_s: float
+    names: tuple[str, ...]
+
+
+def tune_gains(
+    controller: AbstractController,
+    plant: Plant,
+    effects: Sequence[AbstractEffect],
+    references: Sequence[Reference],
+    *,
+    names: Sequence[str] | None = None,
+    batched_plants: bool = False,
+    robust: bool = False,
+    alpha: float = 0.2,
+    tail_weight: float = 1.0,
+    steps: int = 30,
+    learning_rate: float = 0.08,
+    weights: CostWeights | None = None,
+    progress: bool = False,
+    rtol: float = 1e-5,
+    **sim_kw,
+) -> TuneResult:
+    """Tune the gains of ``controller`` by Adam on the log gains, gradients through the
+    closed-loop simulation.
+
+    Args:
+        controller: starting gains (:class:`~jaxlift.PID` or :class:`~jaxlift.ScheduledPID`).
+        plant, effects: the model; with ``batched_plants=True`` stacked draws (see
+            :func:`batch_models`).
+        references: one reference per load (same length), e.g. at 500 and 1500 kg.
+        names: which gains to tune (see :meth:`GainSpace.for_controller`).
+        robust: objective ``mean + tail_weight * CVaR_alpha`` over the draws (else the
+            mean over the draws; with one plant: the nominal cost).
+        steps: Adam steps (budget: ``steps`` value-and-gradient evaluations).
+        learning_rate: Adam step in log-gain units.
+        weights: cost scales (:class:`~jaxlift._performance.CostWeights`).
+        progress: tqdm progress bar (stderr).
+        rtol: solver tolerance during tuning; ``sim_kw``: ``sampled``, ``T_c``,
+            ``noise_seed`` of :func:`simulate_closed_loop`.
+
+    Deterministic: the same inputs give the same gains.
+    """
+    from tqdm.auto import tqdm
+
+    t_start = time.perf_counter()
+    effects = _canonical(effects) if not batched_plants else tuple(effects)
+    space = GainSpace.for_controller(controller, names)
+    refs = stack_references(list(references))
+    sim_kw = dict(sim_kw, rtol=rtol)
+
+    def objective(theta):
+        ctrl = space.from_theta(theta)
+        c, ok, _ = closed_loop_costs(
+            ctrl, plant, effects, refs, batched_plants=batched_plants, weights=weights, **sim_kw
+        )
+        per_draw = jnp.mean(c, axis=1)
+        obj = robust_objective(per_draw, alpha, tail_weight) if robust else jnp.mean(per_draw)
+        return obj, jnp.sum(~ok)
+
+    vg = eqx.filter_jit(jax.value_and_grad(objective, has_aux=True))
+    opt = optax.apply_if_finite(optax.adam(learning_rate), max_consecutive_errors=5)
+    theta = jnp.asarray(space.to_theta(controller))
+    state = opt.init(theta)
+    history: list[float] = []
+    best = (math.inf, theta, 0)
+    bar = tqdm(range(steps), desc="tuning", disable=not progress, leave=False)
+    for _ in bar:
+        (val, n_bad), grad = vg(theta)
+        val = float(val)
+        history.append(val)
+        if val < best[0]:
+            best = (val, theta, int(n_bad))
+        bar.set_postfix(cost=f"{val:.4g}", best=f"{best[0]:.4g}")
+        updates, state = opt.update(grad, state, theta)
+        theta = optax.apply_updates(theta, updates)
+    (val, n_bad), _ = vg(theta)  # the last point
+    history.append(float(val))
+    if float(val) < best[0]:
+        best = (float(val), theta, int(n_bad))
+    return TuneResult(
+        controller=space.from_theta(best[1]),
+        initial=controller,
+        initial_cost=history[0],
+        best_cost=best[0],
+        history=history,
+        n_failed=best[2],
+        n_evaluations=steps + 1,
+        wall_s=time.perf_counter() - t_start,
+        names=space.names,
+    )
+
+
+# ------------------------------------------------------------------ parameter draws
+@dataclasses.dataclass
+class DrawSet:
+    """Parameter draws of the plant (+ effects).
+
+    Attributes:
+        source: where they came from (posterior, or least-squares covariance), as text.
+        effects: effect names of the model.
+        draws: one ``{name: value}`` per draw (physical units, MODEL.md names).
+    """
+
+    source: str
+    effects: list[str]
+    draws: list[dict[str, float]]
+
+    def split(self, n_first: int) -> tuple[DrawSet, DrawSet]:
+        """The first ``n_first`` draws and the rest (e.g. tuning / held-out)."""
+        return (
+            DrawSet(self.source, self.effects, self.draws[:n_first]),
+            DrawSet(self.source, self.effects, self.draws[n_first:]),
+        )
+
+
+def parameter_draws(
+    n: int,
+    seed: int,
+    *,
+    posterior_dir: str | os.PathLike | None = None,
+    fit_dir: str | os.PathLike | None = None,
+) -> DrawSet:
+    """``n`` draws of the model parameters from ``seed``.
+
+    From the posterior (``jaxlift._posterior.posterior_draws(posterior_dir, n, seed)``)
+    when ``posterior_dir`` is given and that works; else from the least-squares fit in
+    ``fit_dir`` (``params.json`` and ``metrics.json``: standard errors and, where
+    present, the correlation matrix; independent otherwise): a Gaussian in the
+    unconstrained coordinate of each parameter (log/logit, delta method), except for a
+    parameter whose standard error is large against its distance to the bound (>
+    half of it), which is drawn in physical units and clipped to its bounds. Unfitted
+    parameters are fixed. ``source`` says which was used."""
+    notes = []
+    if posterior_dir is not None:
+        try:
+            from ._posterior import posterior_draws  # written in parallel; may be absent
+
+            eff, draws = posterior_draws(posterior_dir, n, seed)
+            return DrawSet(f"posterior samples from {posterior_dir}", list(eff), list(draws))
+        except (ImportError, FileNotFoundError, OSError, ValueError) as err:
+            notes.append(f"posterior in {posterior_dir} not usable ({err})")
+    if fit_dir is None:
+        raise ParameterError(
+            "no parameter draws: give a posterior directory or a fit directory "
+            "(params.json + metrics.json from `jaxlift fit`)"
+        )
+    fit_dir = os.fspath(fit_dir)
+    infos = all_param_infos("all")
+    from ._params import load_params_json
+
+    values = load_params_json(os.path.join(fit_dir, "params.json"), infos)
+    mpath = os.path.join(fit_dir, "metrics.json")
+    try:
+        with open(mpath, encoding="utf-8") as fh:
+            metrics = json.load(fh)
+    except FileNotFoundError:
+        raise ParameterError(f"{mpath}: not found (needed for the fit covariance)") from None
+    se = {k: float(v) for k, v in (metrics.get("stderr") or {}).items() if v is not None}
+    se = {k: v for k, v in se.items() if k in values and math.isfinite(v) and v > 0}
+    names = sorted(se)
+    corr = np.eye(len(names))
+    if "correlation" in metrics:
+        cn = metrics["correlation"]["names"]
+        cm = np.asarray(metrics["correlation"]["matrix"], dtype=float)
+        idx = {k: i for i, k in enumerate(cn)}
+        for a, na in enumerate(names):
+            for b, nb in enumerate(names):
+                if na in idx and nb in idx:
+                    corr[a, b] = cm[idx[na], idx[nb]]
+    else:
+        notes.append("metrics.json has no correlation matrix: parameters drawn independently")
+    mean, sd, logspace = [], [], []
+    for k in names:
+        info, v = infos[k], values[k]
+        theta = float(to_unconstrained(info, v))
+        eps = 1e-6 * max(abs(v), 1e-12)
+        slope = (
+            float(to_unconstrained(info, v + eps)) - float(to_unconstrained(info, v - eps))
+        ) / (2 * eps)
+        dist = min(v - info.lower, info.upper - v)
+        use_log = info.transform != "identity" and se[k] < 0.5 * dist and math.isfinite(slope)
+        logspace.append(use_log)
+        mean.append(theta if use_log else v)
+        sd.append(se[k] * abs(slope) if use_log else se[k])
+    cov = np.outer(sd, sd) * corr
+    cov = 0.5 * (cov + cov.T) + 1e-12 * np.diag(np.square(sd))
+    rng = np.random.default_rng(seed)
+    z = rng.multivariate_normal(np.asarray(mean), cov, size=n, method="eigh")
+    draws = []
+    for row in z:
+        d = dict(values)
+        for j, k in enumerate(names):
+            info = infos[k]
+            x = float(from_unconstrained(info, row[j])) if logspace[j] else float(row[j])
+            d[k] = float(np.clip(x, info.lower, info.upper))
+        draws.append(d)
+    effects = [e for e in metrics.get("effects", []) or []]
+    if not effects:
+        from ._effects import EFFECTS
+
+        effects = [n_ for n_, c in EFFECTS.items() if set(c.param_infos()) & set(values)]
+    notes.insert(0, f"least-squares covariance of the fit in {fit_dir} (no posterior)")
+    return DrawSet("; ".join(notes), list(effects), draws)
+
+
+def batch_models(
+    plant: Plant, effects: Sequence[AbstractEffect], draws: Sequence[Mapping[str, float]]
+) -> tuple[Plant, tuple[AbstractEffect, ...]]:
+    """Stack ``(plant, effects)`` with each draw's values (names the model does not
+    have, e.g. effect parameters when the effects are off, are ignored)."""
+    effects = _canonical(effects)
+    known = set(all_param_infos(effects))
+    models = [
+        with_params(plant, effects, {k: v for k, v in d.items() if k in known}) for d in draws
+    ]
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *models)
+
+
+def evaluate_draws(
+    controller: AbstractController,
+    plants: Plant,
+    effects: tuple[AbstractEffect, ...],
+    reference: Reference,
+    *,
+    weights: CostWeights | None = None,
+    **sim_kw,
+) -> tuple[np.ndarray, np.ndarray, Figures]:
+    """Costs, success flags and figures of one controller over stacked draws on one
+    reference (``vmap``)."""
+    c, ok, fig = closed_loop_costs(
+        controller,
+        plants,
+        effects,
+        stack_references([reference]),
+        batched_plants=True,
+        weights=weights,
+        **sim_kw,
+    )
+    return np.asarray(c[:, 0]), np.asarray(ok[:, 0]), jax.tree.map(lambda a: a[:, 0], fig)
+
+
+# ------------------------------------------------------------------ stability
+def operating_points(plant: Plant) -> list[tuple[str, float]]:
+    """Heights [m] along the lift: the middle and both ends of every stage."""
+    x1, x2, xm = plant.x_s1, plant.x_s2, plant.x_max
+    return [
+        ("stage 1 low", 0.3),
+        ("stage 1 mid", 0.75),
+        ("stage 1 top", x1 - 0.1),
+        ("stage 2 low", x1 + 0.1),
+        ("stage 2 mid", 0.5 * (x1 + x2)),
+        ("stage 2 top", x2 - 0.1),
+        ("stage 3 low", x2 + 0.1),
+        ("stage 3 mid", 0.5 * (x2 + xm)),
+        ("stage 3 top", xm - 0.2),
+    ]
+
+
+def _cl_field_frozen(z, x, v_ref, plant, effects, ctrl, m_load, sat_gain):
+    """Closed-loop derivative of all states but ``x`` (``x`` frozen), no noise."""
+    n_plant = 3 + sum(e.n_states for e in effects)
+    yp = jnp.concatenate([x[None], z[: n_plant - 1]])
+    q_I, eta = z[n_plant - 1], z[n_plant]
+    out = ctrl.output(plant, x, m_load, v_ref - yp[1], q_I, eta, True, sat_gain=sat_gain)
+    _, dyp = plant_signals_and_derivative(0.0, yp, plant, effects, out.u, m_load)
+    return jnp.concatenate([dyp[1:], jnp.stack([out.dq_I, out.deta])])
+
+
+@eqx.filter_jit
+def _equilibrium_and_jacobian(plant, effects, ctrl, m_load, x, v_ref, sat_gain):
+    # first guess: force balance at v_ref, the duty that delivers the flow
+    inputs = Inputs(
+        ts=jnp.asarray([0.0, 1.0]),
+        pwm=jnp.zeros(2),
+        load_kg=jnp.stack([m_load, m_load]),
+        jump_ts=jnp.asarray([1.0]),
+        x0=x,
+    )
+    y0 = initial_state(plant, effects, inputs)
+    area, r = plant.area(x), plant.ratio
+    p = ((m_load + plant.stage_mass(x)) * 9.81 + plant.friction(v_ref) + plant.d * v_ref) * r / area
+    omega = area * v_ref / r * 2 * jnp.pi / (plant.eta_v * plant.disp)
+    k = plant.staged(x, plant.k1, plant.k2, plant.k3)
+    zz = plant.staged(x, plant.z1, plant.z2, plant.z3)
+    u = (omega - zz) / k / plant.u_batt
+    (_, _, _), zs = _split(y0, effects)
+    z = jnp.concatenate([jnp.stack([v_ref, p]), *zs, jnp.stack([u, 0.0])])
+    f = lambda z: _cl_field_frozen(z, x, v_ref, plant, effects, ctrl, m_load, sat_gain)
+
+    def newton(z, _):
+        J = jax.jacfwd(f)(z)
+        dz = jnp.linalg.solve(J, -f(z))
+        return z + dz, None
+
+    z, _ = jax.lax.scan(newton, z, None, length=12)
+    J = jax.jacfwd(f)(z)
+    resid = f(z)
+    return z, J, resid
+
+
+def closed_loop_eigenvalues(
+    plant: Plant,
+    effects: Sequence[AbstractEffect],
+    controller: AbstractController,
+    m_load: float,
+    x: float,
+    v_ref: float,
+    sat_gain: float | None = None,
+) -> tuple[np.ndarray, float, bool]:
+    """Eigenvalues [1/s] of the closed loop linearised at height ``x`` [m] (frozen),
+    steady motion at ``v_ref`` [m/s], load ``m_load`` [kg]; ``sat_gain``: slope of the
+    saturation (None: 1, the noise-free interior). Returns ``(eigenvalues, duty at the
+    operating point, whether the operating point was found with 0 < u < 1)``."""
+    effects = _canonical(effects)
+    z, J, resid = _equilibrium_and_jacobian(
+        plant,
+        effects,
+        controller,
+        jnp.asarray(m_load, dtype=jnp.float64),
+        jnp.asarray(x, dtype=jnp.float64),
+        jnp.asarray(v_ref, dtype=jnp.float64),
+        None if sat_gain is None else jnp.asarray(sat_gain, dtype=jnp.float64),
+    )
+    n_plant = 3 + sum(e.n_states for e in effects)
+    u = float(z[n_plant - 1])
+    scale = np.abs(np.asarray(J)).max(axis=1) * np.maximum(np.abs(np.asarray(z)), 1e-6) + 1e-12
+    found = bool(np.all(np.abs(np.asarray(resid)) <= 1e-6 * scale)) and 0.0 < u < 1.0
+    return np.linalg.eigvals(np.asarray(J)), u, found
+
+
+def noise_describing_gain(
+    controller: AbstractController,
+    plant: Plant,
+    x: float,
+    m_load: float,
+    u_op: float,
+    *,
+    sampled: bool = False,
+    T_c: float = 0.01,
+    seed: int = 0,
+    n_samples: int = 2000,
+    sub: int = 64,
+) -> float:
+    """Incremental gain of the saturation ``clip(., 0, 1)`` for a small signal on top of
+    the sensor noise's part of ``u_raw`` around the duty ``u_op``: the probability
+    that ``u_op + xi`` is inside (0, 1) (Booton), over time. ``xi = P n + D N (n - eta_n)``
+    with ``eta_n`` the filtered noise (the slow integral path is left out); continuous
+    form on ``sub`` points per noise hold, sampled form at the clock instants."""
+    P, _, D = (float(g) for g in controller.gains(plant, jnp.asarray(x), jnp.asarray(m_load)))
+    N = float(controller.N)
+    rng = np.random.default_rng(seed)
+    n = rng.normal(0.0, math.sqrt(NOISE_POWER / NOISE_TS), n_samples)
+    if sampled:
+        reps = max(1, int(round(NOISE_TS / T_c)))
+        nk = np.repeat(n, reps)
+        a = 1.0 - math.exp(-N * T_c)
+        eta, xi = 0.0, np.empty(nk.size)
+        for i, v in enumerate(nk):
+            xi[i] = P * v + D * N * (v - eta)
+            eta += a * (v - eta)
+    else:
+        tau = (np.arange(sub) + 0.5) / sub * NOISE_TS
+        eta, xs = 0.0, []
+        for v in n:
+            dev = (v - eta) * np.exp(-N * tau)  # n - eta_n within the hold
+            xs.append(P * v + D * N * dev)
+            eta = v - (v - eta) * math.exp(-N * NOISE_TS)
+        xi = np.concatenate(xs)
+    inside = (u_op + xi > 0.0) & (u_op + xi < 1.0)
+    return float(np.mean(inside))
+
+
+def stability_table(
+    plant: Plant,
+    effects: Sequence[AbstractEffect],
+    controller: AbstractController,
+    m_load: float,
+    *,
+    speeds: Sequence[float] = (0.025, 0.09),
+    noise: bool = False,
+    sampled: bool = False,
+    T_c: float = 0.01,
+) -> list[dict]:
+    """Max real part of the closed-loop eigenvalues at :func:`operating_points` and
+    ``speeds`` [m/s]; with ``noise`` the saturation's slope is the noise describing
+    gain (:func:`noise_describing_gain`). Rows: point, x, v_ref, u, gain, max_real,
+    the eigenvalue's frequency [Hz], stable."""
+    rows = []
+    for label, x in operating_points(plant):
+        for v in speeds:
+            eig, u, found = closed_loop_eigenvalues(plant, effects, controller, m_load, x, v)
+            g = 1.0
+            if noise and found:
+                g = noise_describing_gain(controller, plant, x, m_load, u, sampled=sampled, T_c=T_c)
+                eig, _, _ = closed_loop_eigenvalues(
+                    plant, effects, controller, m_load, x, v, sat_gain=g
+                )
+            i = int(np.argmax(eig.real))
+            rows.append(
+                dict(
+                    point=label,
+                    x_m=x,
+                    v_ref_mps=v,
+                    u=u,
+                    sat_gain=g,
+                    max_real_per_s=float(eig.real[i]) if found else float("nan"),
+                    freq_hz=abs(float(eig.imag[i])) / (2 * math.pi) if found else float("nan"),
+                    stable=bool(found and eig.real[i] < 0),
+                )
+            )
+    return rows
