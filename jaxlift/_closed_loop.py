@@ -420,7 +420,6 @@ def _solve_sampled(
     plant, effects, ctrl, ref, seed, noise_on, T_c, rtol, atol_base, max_steps, adj, has_delay
 ):
     yp0 = _start(plant, effects, ref)
-    n_plant = yp0.shape[0]
     atol = _atol(effects, atol_base, [])
     noise = _noise(seed, ref.n_out) if noise_on else None
     stride = int(round(OUTPUT_DT / T_c))

@@ -119,7 +119,7 @@ class AbstractController(eqx.Module):
                 keeps the value ``clip(u_raw)`` but gives ``du/du_raw = g`` to autodiff
                 (the describing-gain linearisation of :mod:`jaxlift._tuning`).
         """
-        P, I, D = self.gains(plant, x, m_load)
+        P, I, D = self.gains(plant, x, m_load)  # noqa: E741
         u_raw = P * e + q_I + D * self.N * (e - eta)
         u = jnp.clip(u_raw, 0.0, 1.0)
         if sat_gain is not None:  # value clip(u_raw), derivative sat_gain
@@ -149,7 +149,7 @@ class AbstractController(eqx.Module):
         discretised exactly, the integral by forward Euler.
 
         Returns ``(u, u_raw, q_I_next, eta_next)``; ``u`` is held for one period."""
-        P, I, D = self.gains(plant, x, m_load)
+        P, I, D = self.gains(plant, x, m_load)  # noqa: E741
         u_raw = P * e + q_I + D * self.N * (e - eta)
         u = jnp.clip(u_raw, 0.0, 1.0)
         q_next = q_I + T_c * (I * e + self.K_aw * (u - u_raw))
@@ -186,7 +186,7 @@ class PID(AbstractController):
     D=2, N=100``, no anti-windup)."""
 
     P: Scalar = _p(20.0, _P)
-    I: Scalar = _p(300.0, _I)
+    I: Scalar = _p(300.0, _I)  # noqa: E741
     D: Scalar = _p(2.0, _D)
     N: Scalar = _p(100.0, _N)
     K_aw: Scalar = _p(0.0, _K)

@@ -51,7 +51,7 @@ from ._closed_loop import (
     Reference,
     simulate_closed_loop,
 )
-from ._control import PID, SCHEDULE_MASSES, AbstractController, ScheduledPID
+from ._control import SCHEDULE_MASSES, AbstractController, ScheduledPID
 from ._effects import AbstractEffect
 from ._model import all_param_infos, with_params
 from ._params import ParameterError, from_unconstrained, to_unconstrained
