@@ -1,0 +1,237 @@
+"""Posterior (emcee): log-probability, truth inside the 90 % intervals, resume, seeds,
+air content, command line."""
+
+import json
+import math
+
+import emcee
+import jax
+import numpy as np
+import pytest
+
+import jaxlift as jl
+from jaxlift._plant import P_ATM
+from jaxlift._posterior import (
+    AIR_THRESHOLD,
+    BETA_OIL,
+    _hdi,
+    air_content,
+    air_verdict,
+    make_log_prob,
+    posterior_draws,
+    posterior_samples,
+    prepare_posterior,
+    sample_posterior,
+)
+from jaxlift._sequences import ramped_sequence
+
+#: Truth away from the nominal values (as in test_fit), no hidden effect.
+TRUTH = dict(
+    k1=2.05, k2=1.95, k3=1.80, z1=-2.6, z2=-3.3, z3=-4.4,
+    beta=0.5e9, cf_con=22.0, cf_in=14.0, cf_out=700.0, d=420.0,
+)  # fmt: skip
+#: A short run in stage 1: fast and slow sections, holds (26 s).
+SECTIONS = [(0.0, 2.0), (0.45, 4.0), (0.17, 6.0), (0.0, 3.0), (0.42, 4.0), (0.16, 5.0), (0.0, 2.0)]
+DYNAMIC = ("beta", "cf_con", "cf_in", "cf_out", "d")
+WALKERS = 12  # one batch size (6) for every test: one compile of the log-probability
+
+
+def synthetic_logs(seeds=(1, 2), loads=(600.0, 1400.0)):
+    """Two short logs (50 Hz) simulated at TRUTH with MODEL.md's sensor noise."""
+    plant, _ = jl.with_params(jl.Plant(), (), TRUTH)
+    ts, pwm = ramped_sequence(SECTIONS, dt=0.02)
+    logs = []
+    for load, seed in zip(loads, seeds):
+        inputs = jl.Inputs.from_arrays(ts, pwm, np.full_like(ts, load), 0.3)
+        sol = jl.simulate(plant, (), inputs, rtol=1e-8, atol=(1e-9, 1e-9, 1e-2))
+        logs.append(
+            jl.to_log(
+                sol, inputs, jl.MeasurementModel(), jax.random.key(seed), name=f"syn{load:.0f}"
+            )
+        )
+    return logs
+
+
+@pytest.fixture(scope="module")
+def logs():
+    return synthetic_logs()
+
+
+@pytest.fixture(scope="module")
+def problem(logs):
+    # least squares starts from the truth: this tests the posterior, not the global search
+    return prepare_posterior(logs, params=TRUTH)
+
+
+@pytest.fixture(scope="module")
+def log_prob(problem):
+    return make_log_prob(problem)  # the default: jax.lax.map inside one jit
+
+
+def _batch(problem, n=WALKERS // 2, seed=0, spread=1.0):
+    rng = np.random.default_rng(seed)
+    return rng.multivariate_normal(problem.theta_opt, spread * problem.cov_theta, size=n)
+
+
+def test_problem_setup(problem):
+    assert problem.names == DYNAMIC
+    # white sensor noise and the true model: the AR(1) noise model is ~ white, ~ sensor
+    assert np.all(np.abs(problem.rho[:, :2]) < 0.1), problem.rho
+    assert np.all(np.abs(problem.scale[:, :2] - 1) < 0.1), problem.scale
+    assert np.all(np.linalg.eigvalsh(problem.cov_theta) > 0)
+
+
+def test_log_prob_finite_and_batch_equals_single(problem, log_prob):
+    th = _batch(problem)
+    th[0] = problem.theta_opt
+    lp = log_prob(th)
+    assert np.all(np.isfinite(lp)), lp
+    assert lp[0] == pytest.approx(lp.max(), abs=20)  # the optimum is among the best
+    single = make_log_prob(problem, batch="single")(th)
+    vmapped = make_log_prob(problem, batch="vmap")(th)
+    np.testing.assert_allclose(lp, single, rtol=1e-10, atol=0)
+    np.testing.assert_allclose(lp, vmapped, rtol=1e-10, atol=0)
+
+
+def test_minus_inf_not_nan(problem, log_prob):
+    th = np.repeat(problem.theta_opt[None], WALKERS // 2, axis=0)
+    k = problem.names.index("beta")
+    th[0, k] = math.log(2e10)  # beta above its upper bound 1e10 Pa: outside the support
+    th[1, k] = 800.0  # overflows to inf
+    th[2, k] = -800.0  # beta -> its lower bound, exp underflows
+    th[3, problem.names.index("d")] = np.inf
+    lp = log_prob(th)
+    assert not np.any(np.isnan(lp))
+    assert np.all(lp[:2] == -np.inf) and lp[3] == -np.inf, lp
+    assert np.isfinite(lp[4]) and lp[4] == lp[5]
+    # a solve that fails (step limit far too low): -inf, never NaN
+    failing = make_log_prob(problem, max_steps=20)(th[4:])
+    assert np.all(failing == -np.inf), failing
+
+
+def test_air_content_by_hand():
+    p = 8e6 + P_ATM  # absolute
+    phi = air_content(0.5e9, p)
+    by_hand = 8.101325e6 * (2.0e-9 - 1 / 1.4e9)  # = 8.101325e6 * 1.2857142857e-9
+    assert phi == pytest.approx(by_hand, rel=1e-12)
+    assert phi == pytest.approx(0.0104160, rel=1e-5)
+    assert air_content(BETA_OIL, p) == 0.0
+    assert air_content(2 * BETA_OIL, p) < 0  # stiffer than ideal oil: no gas
+    rng = np.random.default_rng(0)
+    above = air_verdict(rng.normal(0.01, 1e-4, 4000), p, has_hose=False)
+    assert above["verdict"] == "indicated" and "bleeding the system is indicated" in above["text"]
+    assert "jaxlift diagnose" in above["text"]
+    below = air_verdict(rng.normal(2e-4, 1e-4, 4000), p, has_hose=True)
+    assert below["verdict"] == "not indicated" and "hose" in below["text"]
+    mid = air_verdict(rng.normal(AIR_THRESHOLD, 5e-4, 4000), p, has_hose=False)
+    assert mid["verdict"] == "undecided"
+    lo, hi = _hdi(rng.normal(0, 1, 200_000), 0.9)
+    assert lo == pytest.approx(-1.645, abs=0.02) and hi == pytest.approx(1.645, abs=0.02)
+
+
+def test_unknown_sample_name_names_the_valid_ones(logs):
+    with pytest.raises(jl.ParameterError, match=r"'bogus'.*beta"):
+        prepare_posterior(logs, params=TRUTH, sample="beta,bogus")
+
+
+def test_resume_equals_uninterrupted_and_seeds(problem, log_prob, tmp_path):
+    def run(path, max_steps, seed=3, progress=False):
+        return sample_posterior(
+            problem, path, n_walkers=WALKERS, max_steps=max_steps, seed=seed, chunk=10,
+            log_prob=log_prob, progress=progress,
+        )  # fmt: skip
+
+    def chain(path):
+        b = emcee.backends.HDFBackend(str(path), name="mcmc", read_only=True)
+        return b.get_chain(), b.get_log_prob()
+
+    run(tmp_path / "a.h5", 30)
+
+    class Killed(Exception):
+        pass
+
+    def kill_at_17(it):
+        if it == 17:  # mid-chunk: the chain holds 17 steps
+            raise Killed
+
+    with pytest.raises(Killed):
+        run(tmp_path / "b.h5", 30, progress=kill_at_17)
+    assert chain(tmp_path / "b.h5")[0].shape[0] == 17
+    resumed = run(tmp_path / "b.h5", 30)
+    assert resumed.resumed_from == 17 and resumed.iteration == 30
+    (ca, la), (cb, lb) = chain(tmp_path / "a.h5"), chain(tmp_path / "b.h5")
+    assert np.array_equal(ca, cb) and np.array_equal(la, lb)  # bit for bit
+    run(tmp_path / "c.h5", 30)  # same seed: same numbers
+    cc, lc = chain(tmp_path / "c.h5")
+    assert np.array_equal(ca, cc) and np.array_equal(la, lc)
+    run(tmp_path / "d.h5", 30, seed=4)  # another seed: another chain
+    assert not np.array_equal(ca, chain(tmp_path / "d.h5")[0])
+
+
+@pytest.mark.slow
+def test_truth_inside_90_percent_intervals(problem, log_prob, tmp_path):
+    """On data simulated at TRUTH, the 90 % HDI of beta and of each friction parameter
+    contains the truth. cf_in and cf_out are only determined through cf_out * cf_in^5:
+    their marginals come from the priors along that ridge, and must still cover."""
+    run = sample_posterior(
+        problem, tmp_path / "chain.h5", n_walkers=WALKERS, max_steps=800, seed=0,
+        chunk=100, log_prob=log_prob,
+    )  # fmt: skip
+    samples, _, _ = posterior_samples(problem, run.path, run.tau)
+    n_eff = WALKERS * (run.iteration - 3 * max(run.tau)) / max(run.tau)
+    assert n_eff > 150, (run.iteration, run.tau)
+    for name in DYNAMIC:
+        lo, hi = _hdi(samples[name], 0.9)
+        assert lo < TRUTH[name] < hi, (name, lo, hi, TRUTH[name])
+    prod = samples["cf_out"] * samples["cf_in"] ** 5
+    lo, hi = _hdi(prod, 0.9)
+    assert lo < TRUTH["cf_out"] * TRUTH["cf_in"] ** 5 < hi
+    # determined parameters are actually determined (the test can fail by being vague)
+    lo, hi = _hdi(samples["beta"], 0.9)
+    assert hi / lo < 1.1
+
+
+@pytest.mark.slow
+def test_cli_end_to_end(logs, tmp_path, capsys):
+    from jaxlift._cli import main
+
+    paths = []
+    for lg in logs:
+        p = tmp_path / f"{lg.name}.csv"
+        jl.write_log(p, lg)
+        paths.append(str(p))
+    params = tmp_path / "truth.json"
+    jl.save_params_json(params, TRUTH)
+    out = tmp_path / "post"
+    base = [
+        "posterior", *paths, "--params", str(params), "--walkers", str(WALKERS),
+        "--predictive", "8", "--out", str(out),
+    ]  # fmt: skip
+    rc = main([*base, "--max-steps", "20"])
+    assert rc == 1  # not converged in 20 steps, and it says so
+    text = capsys.readouterr().out
+    assert "NOT CONVERGED" in text and "gas by volume" in text
+    for f in ("chain.h5", "posterior.nc", "summary.csv", "posterior.json", "params.json",
+              "report.md", "report.html", "figures/trace.png", "figures/pair.png",
+              "figures/posterior.png", "figures/prior_posterior.png"):  # fmt: skip
+        assert (out / f).exists(), f
+    md = (out / "report.md").read_text()
+    assert "NOT CONVERGED" in md and "log-normal, median 1.4e+09 Pa" in md
+    res = json.loads((out / "posterior.json").read_text())
+    assert res["steps"] == 20 and not res["converged"]
+    # resume: same settings go on where the chain stopped
+    rc = main([*base, "--max-steps", "30"])
+    text = capsys.readouterr().out
+    assert "resuming" in text
+    assert json.loads((out / "posterior.json").read_text())["steps"] == 30
+    # other settings: refused, clearly
+    rc = main([*base[:-1], str(out), "--walkers", "14", "--max-steps", "30"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "n_walkers" in err
+    # draws of the full parameter set for others (the controller)
+    effects, draws = posterior_draws(out, 5, seed=1)
+    assert effects == [] and len(draws) == 5
+    assert set(draws[0]) == set(jl.all_param_infos(()))
+    assert draws[0]["k1"] == pytest.approx(json.loads((out / "params.json").read_text())["k1"])
+    assert len({d["beta"] for d in draws}) > 1
+    assert posterior_draws(out, 5, seed=1) == (effects, draws)
