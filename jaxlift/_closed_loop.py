@@ -88,7 +88,7 @@ class SampledFilterWarning(UserWarning):
 #: The thesis-like reference (CONTROL.md, thesis figure 2.9): ``(v_ref [m/s],
 #: duration [s])`` sections, ramped over 1 s, from 0.2 m: fast (0.09 m/s) and slow
 #: (0.025 m/s) sections in every stage, holds, both stage shifts crossed (the first
-#: at slow speed near 37 s, the second at fast speed near 79 s); ends near 4.2 m.
+#: at slow speed near 34 s, the second at fast speed near 74 s); 110 s, ends at 4.34 m.
 THESIS_REFERENCE_SECTIONS: list[tuple[float, float]] = [
     (0.0, 2.0),  # initial hold at 0.2 m
     (0.09, 5.0),  # stage 1 fast
@@ -200,7 +200,7 @@ def thesis_reference(
     m_load: float = 1000.0, *, x0: float = 0.2, ramp_s: float = 1.0, time_scale: float = 1.0
 ) -> Reference:
     """The thesis-like reference of CONTROL.md (:data:`THESIS_REFERENCE_SECTIONS`),
-    ~124 s. ``time_scale < 1`` shortens every section (tests), keeping the speeds:
+    110 s. ``time_scale < 1`` shortens every section (tests), keeping the speeds:
     the reference then covers a fraction of the lift."""
     secs = [(v, round(d * time_scale, 2)) for v, d in THESIS_REFERENCE_SECTIONS]
     return Reference.from_sections(secs, m_load=m_load, x0=x0, ramp_s=ramp_s * min(1, time_scale))

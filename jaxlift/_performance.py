@@ -12,7 +12,8 @@ Definitions (SI units; ``err = v_ref - v`` with the *true* speed ``v``):
 - ``tracking_rms``: RMS of ``err`` over the whole run [m/s].
 - ``osc_rms``: RMS of ``err`` band-passed to 0.5--10 Hz over the whole run [m/s];
   ``osc_stage``: the same over the samples whose *reference* height is in stage 1, 2,
-  3; ``osc_sustained``: over the steady samples. The band-pass is zero-phase: the
+  3 (NaN for a stage the reference does not reach); ``osc_sustained``: over the
+  steady samples. The band-pass is zero-phase: the
   FFT of the zero-padded error times the squared magnitude of 2nd-order Butterworth
   high-pass (0.5 Hz) and low-pass (10 Hz) responses (a forward-backward filter).
 - steady samples: ``v_ref`` constant and non-zero for at least ``SETTLE_S`` = 2 s.
@@ -166,7 +167,7 @@ def figures(sol: ClosedLoopSolution) -> Figures:
     return Figures(
         tracking_rms=jnp.sqrt(jnp.mean(err**2)),
         osc_rms=jnp.sqrt(jnp.mean(osc**2)),
-        osc_stage=jnp.stack([_wrms(osc, w) for w in stage_w]),
+        osc_stage=jnp.stack([jnp.where(jnp.sum(w) > 0, _wrms(osc, w), jnp.nan) for w in stage_w]),
         osc_sustained=_wrms(osc, steady),
         bias=_wmean(err, steady),
         height_error=sol.height[-1] - x_ref[-1],
