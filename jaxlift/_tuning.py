@@ -231,6 +231,7 @@ class TuneResult:
         initial: the starting controller.
         initial_cost, best_cost: objective at the start and at the best step.
         history: objective per step (before the step).
+        history_s: wall time [s] since the start when each ``history`` entry was known.
         n_failed: failed runs in the batch at the best step.
         n_evaluations: value-and-gradient evaluations.
         wall_s: wall time including compilation [s].
@@ -242,6 +243,7 @@ class TuneResult:
     initial_cost: float
     best_cost: float
     history: list[float]
+    history_s: list[float]
     n_failed: int
     n_evaluations: int
     wall_s: float
@@ -294,26 +296,23 @@ def tune_gains(
     refs = stack_references(list(references))
     sim_kw = dict(sim_kw, rtol=rtol)
 
-    def objective(theta):
-        ctrl = space.from_theta(theta)
-        c, ok, _ = closed_loop_costs(
-            ctrl, plant, effects, refs, batched_plants=batched_plants, weights=weights, **sim_kw
-        )
-        per_draw = jnp.mean(c, axis=1)
-        obj = robust_objective(per_draw, alpha, tail_weight) if robust else jnp.mean(per_draw)
-        return obj, jnp.sum(~ok)
+    cfg = dict(batched=batched_plants, robust=robust, alpha=alpha, tail_weight=tail_weight)
 
-    vg = eqx.filter_jit(jax.value_and_grad(objective, has_aux=True))
+    def vg(theta):
+        return _objective_value_and_grad(theta, space, plant, effects, refs, weights, cfg, sim_kw)
+
     opt = optax.apply_if_finite(optax.adam(learning_rate), max_consecutive_errors=5)
     theta = jnp.asarray(space.to_theta(controller))
     state = opt.init(theta)
     history: list[float] = []
+    history_s: list[float] = []
     best = (math.inf, theta, 0)
     bar = tqdm(range(steps), desc="tuning", disable=not progress, leave=False)
     for _ in bar:
         (val, n_bad), grad = vg(theta)
         val = float(val)
         history.append(val)
+        history_s.append(time.perf_counter() - t_start)
         if val < best[0]:
             best = (val, theta, int(n_bad))
         bar.set_postfix(cost=f"{val:.4g}", best=f"{best[0]:.4g}")
@@ -321,6 +320,7 @@ def tune_gains(
         theta = optax.apply_updates(theta, updates)
     (val, n_bad), _ = vg(theta)  # the last point
     history.append(float(val))
+    history_s.append(time.perf_counter() - t_start)
     if float(val) < best[0]:
         best = (float(val), theta, int(n_bad))
     return TuneResult(
@@ -329,11 +329,29 @@ def tune_gains(
         initial_cost=history[0],
         best_cost=best[0],
         history=history,
+        history_s=history_s,
         n_failed=best[2],
         n_evaluations=steps + 1,
         wall_s=time.perf_counter() - t_start,
         names=space.names,
     )
+
+
+def _objective(theta, space, plant, effects, refs, weights, cfg, sim_kw):
+    ctrl = space.from_theta(theta)
+    c, ok, _ = closed_loop_costs(
+        ctrl, plant, effects, refs, batched_plants=cfg["batched"], weights=weights, **sim_kw
+    )
+    per_draw = jnp.mean(c, axis=1)
+    if cfg["robust"]:
+        obj = robust_objective(per_draw, cfg["alpha"], cfg["tail_weight"])
+    else:
+        obj = jnp.mean(per_draw)
+    return obj, jnp.sum(~ok)
+
+
+# module level, so that repeated tunings of the same problem shape compile once
+_objective_value_and_grad = eqx.filter_jit(jax.value_and_grad(_objective, has_aux=True))
 
 
 # ------------------------------------------------------------------ parameter draws
@@ -709,6 +727,13 @@ def plot_distributions(
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return os.fspath(path)
+
+
+def _finite(fn, a) -> float:
+    """``fn`` over the finite entries of ``a``; NaN if there are none (no warning)."""
+    a = np.asarray(a, dtype=float).ravel()
+    a = a[np.isfinite(a)]
+    return float(fn(a)) if a.size else float("nan")
 
 
 def _fig_arrays(fig: Figures) -> dict[str, np.ndarray]:

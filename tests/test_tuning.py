@@ -30,7 +30,7 @@ from jaxlift._tuning import (
 CALIBRATED = {"beta": 4.0e8, "cf_con": 1.0, "cf_in": 13.5, "cf_out": 770.0, "d": 560.0}
 PLANT = jl.with_params(jl.Plant(), (), CALIBRATED)[0]
 REF = Reference.from_sections(
-    [(0.0, 1.0), (0.025, 4.0), (0.09, 3.0), (0.025, 4.0), (0.0, 1.0)], m_load=1000.0, x0=1.25
+    [(0.0, 1.0), (0.025, 4.0), (0.09, 3.0), (0.025, 4.0), (0.0, 2.0)], m_load=1000.0, x0=1.25
 )
 START = PID().with_gains({**THESIS_PID, "K_aw": 15.0})
 THESIS = PID().with_gains(THESIS_PID)
