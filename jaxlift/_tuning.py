@@ -799,15 +799,15 @@ def robustness_report(
                     gains=name,
                     cost_median=float(np.median(c)),
                     cost_worst=float(np.max(c)),
-                    tracking_p50_mmps=float(np.nanmedian(arr["tracking_rms_mmps"])),
-                    tracking_max_mmps=float(np.nanmax(arr["tracking_rms_mmps"])),
-                    osc_sust_p50_mmps=float(np.nanmedian(arr["osc_sustained_mmps"])),
-                    osc_sust_max_mmps=float(np.nanmax(arr["osc_sustained_mmps"])),
-                    offset_max_mmps=float(
-                        np.nanmax(np.abs([arr["shift1_offset_mmps"], arr["shift2_offset_mmps"]]))
+                    tracking_p50_mmps=_finite(np.median, arr["tracking_rms_mmps"]),
+                    tracking_max_mmps=_finite(np.max, arr["tracking_rms_mmps"]),
+                    osc_sust_p50_mmps=_finite(np.median, arr["osc_sustained_mmps"]),
+                    osc_sust_max_mmps=_finite(np.max, arr["osc_sustained_mmps"]),
+                    offset_max_mmps=_finite(
+                        np.max, np.abs([arr["shift1_offset_mmps"], arr["shift2_offset_mmps"]])
                     ),
-                    effort_p50=float(np.nanmedian(arr["effort_per_s"])),
-                    shut_p50_pct=float(np.nanmedian(arr["shut_share_pct"])),
+                    effort_p50=_finite(np.median, arr["effort_per_s"]),
+                    shut_p50_pct=_finite(np.median, arr["shut_share_pct"]),
                     osc_free_pct=100.0 * float(np.mean(osc_free)),
                     failed=int(np.sum(~ok)),
                 )
