@@ -39,7 +39,6 @@ from pathlib import Path
 
 import diffrax
 import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import scipy
@@ -69,9 +68,6 @@ START_FACTOR = dict(
 )  # fmt: skip
 #: Accuracy of both simulators: jaxlift's defaults (``fit`` uses them).
 SIM_RTOL, SIM_ATOL = 1e-6, (1e-7, 1e-7, 1.0)
-#: jaxlift's fit settings (``fit``'s defaults).
-LM_RTOL = LM_ATOL = 1e-5
-LM_MAX_STEPS = 200
 #: SciPy: relative finite-difference step in the unconstrained coordinates (chosen by
 #: comparing finite-difference columns against jaxlift's exact forward-mode Jacobian at
 #: the start: see README); unit variable scale (the coordinates are logs and logits, so a
@@ -156,15 +152,21 @@ class ScipyProblem:
         self.failures = 0
 
     def values(self, theta) -> dict[str, float]:
+        """The physical parameters; ``theta`` ends with each log's initial-height offset
+        [mm], estimated with them as in jaxlift's fit."""
+        p = len(self.infos)
+        assert len(theta) == p + len(self.runs)
         return {
             info.name: float(jl.from_unconstrained(info, float(th)))
-            for info, th in zip(self.infos, theta, strict=True)
+            for info, th in zip(self.infos, theta[:p], strict=True)
         }
 
     def residuals(self, theta) -> np.ndarray:
         vals = self.values(theta)
+        offsets = 1e-3 * np.asarray(theta[len(self.infos) :], dtype=float)
         out = []
-        for log, x0, s_h, s_v in self.runs:
+        for (log, x0, s_h, s_v), dx0 in zip(self.runs, offsets, strict=True):
+            x0 = x0 + dx0
             try:
                 sim = sr.simulate_scipy(
                     vals, log.time_s, log.pwm, log.load_kg, x0, "LSODA", SIM_RTOL, SIM_ATOL
@@ -246,7 +248,8 @@ def main() -> None:
         "(height, speed)"
     )
     say(
-        f"fitted: {len(NAMES)} parameters ({', '.join(NAMES)}), in jaxlift's unconstrained "
+        f"fitted: {len(NAMES)} parameters ({', '.join(NAMES)}) and each log's initial-height "
+        "offset, in jaxlift's unconstrained "
         f"coordinates ({', '.join(sorted({infos[n].transform for n in NAMES}))}); start = "
         "truth x (" + ", ".join(f"{START_FACTOR[n]:.2f}" for n in NAMES) + ")"
     )
@@ -255,8 +258,9 @@ def main() -> None:
         "solve_ivp LSODA restarted at every input jump (tests/scipy_reference.py)"
     )
     say(
-        f"jaxlift: fit(free='all', staged=False, n_starts=1): optimistix Levenberg-Marquardt, "
-        f"rtol = atol = {LM_RTOL:g} (Cauchy), forward-mode Jacobian"
+        "jaxlift: fit(free='all', staged=False, n_starts=1): jaxlift's Levenberg-Marquardt "
+        "(jaxlift/_lm.py: residuals at trial points, forward-mode Jacobian at accepted "
+        "ones, stop when the Gauss-Newton decrease < 0.01 s^2)"
     )
     say(
         f"scipy:   least_squares(method='trf', jac='2-point', diff_step={DIFF_STEP:g}, "
@@ -271,34 +275,26 @@ def main() -> None:
     theta_jl_vals = {n: res.params[n] for n in NAMES}
 
     # ------------------------------------------------------------ jaxlift: LM alone
-    # fit() jits a fresh closure on every call, so it compiles on every call (a second
-    # identical call is no faster). The compile-excluded time is taken from the same LM
-    # solve as fit()'s (_fit._lm_solve), compiled ahead of time, then run once.
+    # fit()'s residuals and Jacobian are jitted once per problem structure, so a second
+    # identical call reuses the compiled code: its LM stage is the compile-excluded time.
+    t0 = time.perf_counter()
+    res2 = fit(logs, free="all", init=start, staged=False, n_starts=1)
+    t_fit2 = time.perf_counter() - t0
+    t_lm = res2.stages[0].wall_s
+    steps_lm = res2.stages[0].num_steps
+    lm_agrees = abs(res2.chi2 - res.chi2) < 1e-9 * res.chi2
+    # optimistix's Levenberg--Marquardt on the same problem (fit(method="optimistix")),
+    # for reference: compiled afresh on each call
+    t0 = time.perf_counter()
+    res_ox = fit(logs, free="all", init=start, staged=False, n_starts=1, method="optimistix")
+    t_ox = time.perf_counter() - t0
+
     plant0, _ = jl.with_params(jl.Plant(), (), start)
     problem = _Problem(plant0, (), tuple(experiments), NAMES, tuple(infos[n] for n in NAMES))
-    fn = problem.residual_fn()
-    solver = optx.LevenbergMarquardt(rtol=LM_RTOL, atol=LM_ATOL)
-
-    @eqx.filter_jit
-    def lm_solve(theta, args):
-        sol = optx.least_squares(fn, solver, theta, args, max_steps=LM_MAX_STEPS, throw=False)
-        r = fn(sol.value, args)
-        return sol.value, sol.result, sol.stats["num_steps"], jnp.sum(r**2)
-
     theta0 = problem.to_theta(start)
-    t0 = time.perf_counter()
-    lm_compiled = lm_solve.lower(theta0, problem.args).compile()
-    t_lm_compile = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    _, _, steps_lm, chi2_lm = jax.block_until_ready(lm_compiled(theta0, problem.args))
-    t_lm = time.perf_counter() - t0
-    lm_agrees = abs(float(chi2_lm) - res.chi2) < 1e-6 * res.chi2
 
-    # jaxlift's residuals at a given point (same function, no LM)
-    res_jit = eqx.filter_jit(fn)
-
-    def chi2_jaxlift(values) -> float:
-        r = np.asarray(res_jit(problem.to_theta(values), problem.args))
+    def chi2_jaxlift(values, x0_mm=None) -> float:
+        r = problem.residuals_at(problem.to_theta(values, x0_mm))
         return float(r @ r)
 
     load_mid = _load()
@@ -336,8 +332,11 @@ def main() -> None:
     # ------------------------------------------------------------ cross-evaluation
     chi2_start_jl = chi2_jaxlift(start)
     chi2_start_sp = sp.record[0][1]
-    chi2_sp_at_jl = float(np.sum(sp.residuals(np.asarray(problem.to_theta(theta_jl_vals))) ** 2))
-    chi2_jl_at_sp = chi2_jaxlift(sp_vals)
+    x0_jl = [1e3 * res.x0_offsets[e.name] for e in experiments]  # mm
+    x0_sp = np.asarray(theta_sp)[len(NAMES) :]
+    th_jl = np.asarray(problem.to_theta(theta_jl_vals, x0_jl))
+    chi2_sp_at_jl = float(np.sum(sp.residuals(th_jl) ** 2))
+    chi2_jl_at_sp = chi2_jaxlift(sp_vals, x0_sp)
     chi2_sp_at_truth = float(np.sum(sp.residuals(np.asarray(problem.to_theta(TRUTH))) ** 2))
     chi2_jl_at_truth = chi2_jaxlift(TRUTH)
     level = chi2_sp_at_jl + CHI2_TOL
@@ -358,8 +357,13 @@ def main() -> None:
     )
     say(
         f"jaxlift: {stage.message}, {stage.num_steps} LM steps; chi2/N {res.chi2 / n_res:.4f}; "
-        f"compile-excluded LM solve {'agrees' if lm_agrees else 'DISAGREES'} with fit() "
-        f"(chi2 {float(chi2_lm):.3f}, {int(steps_lm)} steps)"
+        f"second (compiled) call {'agrees' if lm_agrees else 'DISAGREES'} "
+        f"(chi2 {res2.chi2:.3f}, {steps_lm} steps)"
+    )
+    say(
+        f"optimistix LM (fit(method='optimistix'), for reference): {res_ox.stages[0].message}, "
+        f"{res_ox.stages[0].num_steps} steps, chi2 {res_ox.chi2:.3f}, fit() {t_ox:.1f} s, "
+        f"LM stage {res_ox.stages[0].wall_s:.1f} s incl compile"
     )
     say(
         f"scipy:   {sp_msg}; {sp_iters}; {n_sims} residual evaluations "
@@ -413,7 +417,7 @@ def main() -> None:
         "PASS" if t_fit <= 60.0 else "MISS",
     )
     ratio_row("2", "time to the optimum: LM stage of fit(), incl compile", stage.wall_s, 20)
-    ratio_row("2b", "time to the optimum: LM solve, compile excluded", t_lm, 20)
+    ratio_row("2b", "time to the optimum: LM stage, compiled (2nd call)", t_lm, 20)
     ratio_row("2c", "time to the optimum: fit() total", t_fit, None)
     row(
         "3",
@@ -421,21 +425,20 @@ def main() -> None:
         f"{res.chi2 / n_res:.5f}",
         f"{chi2_sp / n_res:.5f}",
         f"{chi2_sp - chi2_sp_at_jl:+.2f}",
-        f"<= +{CHI2_TOL:g}",
-        "PASS" if chi2_sp - chi2_sp_at_jl <= CHI2_TOL else "MISS",
+        f">= -{CHI2_TOL:g}",
+        "PASS" if chi2_sp - chi2_sp_at_jl >= -CHI2_TOL else "MISS",
     )
     say("-" * 100)
     say(
         f"row 2: scipy = time until its chi2 first reached jaxlift's optimum (+{CHI2_TOL:g}); "
         "jaxlift = until its converged result. Row 3 value: scipy's final chi2 minus "
-        "jaxlift's optimum, both in scipy's simulator."
+        "jaxlift's optimum, both in scipy's simulator (PASS: jaxlift's cost is equal or "
+        "lower)."
     )
     say(
         f"jaxlift: fit() {t_fit:.1f} s = LM stage {stage.wall_s:.1f} s (compile + "
-        f"{stage.num_steps} steps) + error analysis {t_fit - stage.wall_s:.1f} s (Jacobian at "
-        f"the optimum, compiled afresh); the same LM solve compiled ahead of time: trace + "
-        f"compile {t_lm_compile:.1f} s, run {t_lm:.1f} s, "
-        f"{t_lm / max(int(steps_lm), 1) * 1e3:.0f} ms per LM step"
+        f"{stage.num_steps} accepted steps) + error analysis {t_fit - stage.wall_s:.1f} s; "
+        f"second call (compiled): fit() {t_fit2:.1f} s, LM {t_lm:.1f} s"
     )
     say(f"scipy: total wall time of the least_squares call {t_sp:.1f} s")
 

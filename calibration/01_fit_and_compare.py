@@ -70,7 +70,8 @@ print(f"nominal model, {fit_logs[0].name}: RMS height error {rms * 1e3:.0f} mm")
 
 # %% [markdown]
 # ## Calibrate
-# Levenberg–Marquardt (optimistix) through the simulation, in stages as in the thesis
+# Levenberg–Marquardt through the simulation (forward-mode Jacobian through diffrax),
+# in stages as in the thesis
 # (motor set `k1..z3`, then the dynamic set `beta, cf_con, cf_in, cf_out, d`, then all),
 # each stage from several starting points. Residuals are scaled by the sensor noise, so
 # chi2 per sample near 1 means "as good as the sensors allow".

@@ -10,6 +10,13 @@ The public surface. Enable float64 at the start of your program::
     sol = jl.simulate(jl.Plant(), jl.make_effects("hose_compliance"), jl.Inputs.from_log(log))
 """
 
+from ._diagnose import (
+    Diagnosis,
+    EffectScreen,
+    diagnose,
+    diagnose_iteratively,
+    screen_effects,
+)
 from ._effects import EFFECTS, AbstractEffect, AbstractStatelessEffect, Signals
 from ._effects.entrained_air import EntrainedAir
 from ._effects.hose_compliance import HoseCompliance
@@ -19,6 +26,7 @@ from ._effects.mast_compliance import MastCompliance
 from ._effects.motor_droop import MotorDroop
 from ._effects.motor_inertia import MotorInertia
 from ._effects.stick_slip import StickSlip
+from ._fit import PARAMETER_SETS, FitResult, evaluate, fit
 from ._log import Log, LogError, UnusedColumnsWarning, read_log, write_log
 from ._measurement import MeasurementModel, measure, to_log
 from ._model import all_param_infos, load_model, model_params, with_params
@@ -35,12 +43,33 @@ from ._params import (
     to_unconstrained,
 )
 from ._plant import Plant
-from ._simulate import Inputs, SimulationError, Solution, initial_height, make_effects, simulate
+from ._simulate import (
+    Inputs,
+    SimulationError,
+    Solution,
+    initial_height,
+    make_effects,
+    plant_signals_and_derivative,
+    simulate,
+)
+from ._workflows import run_diagnose, run_fit
 
 __version__ = "0.1.0"
 
 __all__ = [
     "EFFECTS",
+    "PARAMETER_SETS",
+    "Diagnosis",
+    "EffectScreen",
+    "FitResult",
+    "diagnose",
+    "diagnose_iteratively",
+    "evaluate",
+    "fit",
+    "plant_signals_and_derivative",
+    "run_diagnose",
+    "run_fit",
+    "screen_effects",
     "AbstractEffect",
     "AbstractStatelessEffect",
     "EntrainedAir",

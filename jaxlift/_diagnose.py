@@ -31,8 +31,6 @@ import dataclasses
 import math
 from collections.abc import Callable, Mapping, Sequence
 
-import equinox as eqx
-import jax
 import numpy as np
 
 from ._effects import EFFECTS
@@ -115,9 +113,7 @@ def screen_effects(
         plant, base_effs, tuple(experiments), tuple(base.free), tuple(infos[n] for n in base.free)
     )
     theta = problem.to_theta(base.params, [1e3 * base.x0_offsets[e.name] for e in experiments])
-    fn = problem.residual_fn()
-    r = np.asarray(eqx.filter_jit(fn)(theta, problem.args))
-    J = np.asarray(eqx.filter_jit(jax.jacfwd(fn))(theta, problem.args))
+    r, J = problem.jacobian_at(theta)
     n, p = J.shape
     s2 = float(r @ r) / max(n - p, 1)
     infl = base.inflation
@@ -131,7 +127,7 @@ def screen_effects(
             plant, effs, {k: v for k, v in base.params.items() if k not in PLANT_PARAMS}
         )
         prob_e = dataclasses.replace(problem, effects=effs)  # same theta, effect switched on
-        rs = np.asarray(eqx.filter_jit(prob_e.residual_fn())(theta, prob_e.args))
+        rs = prob_e.residuals_at(theta)
         g = (rs - r) / step
         coef, *_ = np.linalg.lstsq(J, g, rcond=None)
         g_perp = g - J @ coef
@@ -162,27 +158,34 @@ def diagnose(
     base_effects: Sequence[str] = (),
     base: FitResult | None = None,
     free: str = "all",
-    n_confirm: int = 2,
+    init: Mapping[str, float] | None = None,
+    n_confirm: int | None = None,
     z_threshold: float = 3.0,
     bic_threshold: float = 10.0,
     n_starts: int = 2,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
 ) -> Diagnosis:
-    """Fit the model (baseline + ``base_effects``) unless ``base`` is given, screen every
-    other candidate effect, confirm the best ``n_confirm`` screened ones whose ``z``
-    exceeds ``z_threshold`` by refits, and give the verdict."""
+    """Fit the model (baseline + ``base_effects``, from ``init`` or nominal values)
+    unless ``base`` is given, screen every other candidate effect, confirm by refits
+    the screened ones whose ``z`` exceeds ``z_threshold`` (all of them, or the best
+    ``n_confirm``), and give the verdict.
+
+    Confirming every significant candidate, not only the top of the screen: once one
+    effect is in the model the remaining misfit is small and every candidate's score
+    is significant (measured on the shipped data: z 7-14 for all seven, the hidden
+    one last), so only the refits can tell them apart."""
     say = progress or (lambda _s: None)
     if base is None:
         say(f"fitting the model (effects: {', '.join(base_effects) or 'none'})")
-        base = fit(logs, effects=base_effects, free=free, staged=True, n_starts=n_starts,
-                   seed=seed, progress=progress)  # fmt: skip
+        base = fit(logs, effects=base_effects, free=free, init=init, staged=True,
+                   n_starts=n_starts, seed=seed, progress=progress)  # fmt: skip
     ranking = screen_effects(base, logs)
     say("score screens: " + ", ".join(f"{s.effect} z={s.z:.1f}" for s in ranking))
     heldout_before = _heldout_chi2(base.params, base.effects, validate_logs)
     bic0 = _bic(base.chi2, len(base.free), base.n_residuals, base.inflation)
     winner, winner_fit, best_dbic = "none", None, -bic_threshold
-    for s in [s for s in ranking if s.z > z_threshold][:n_confirm]:
+    for s in [s for s in ranking if s.z > z_threshold][:n_confirm]:  # None: all
         infos = EFFECTS[s.effect].param_infos()
         info = infos[s.parameter]
         best = None

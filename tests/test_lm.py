@@ -1,0 +1,132 @@
+"""jaxlift's Levenberg--Marquardt driver (``jaxlift/_lm.py``) on problems whose optimum
+is known independently (linear least squares by ``numpy.linalg.lstsq``, a nonlinear fit
+by SciPy), and ``fit(method="lm")`` against ``fit(method="optimistix")``."""
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from jaxlift._lm import levenberg_marquardt
+
+
+def _numeric(fn):
+    """(residuals, jacobian) callables from a numpy residual function (central FD)."""
+
+    def jac(theta):
+        r = fn(theta)
+        J = np.empty((r.size, theta.size))
+        for k in range(theta.size):
+            h = 1e-6 * max(1.0, abs(theta[k]))
+            e = np.zeros_like(theta)
+            e[k] = h
+            J[:, k] = (fn(theta + e) - fn(theta - e)) / (2 * h)
+        return r, J
+
+    return fn, jac
+
+
+def test_linear_least_squares_matches_lstsq():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(200, 4))
+    b = rng.normal(size=200)
+    exact, *_ = np.linalg.lstsq(A, b, rcond=None)
+    res = levenberg_marquardt(
+        lambda th: A @ th - b, lambda th: (A @ th - b, A), np.zeros(4), gtol=1e-12
+    )
+    assert res.converged, res.message
+    # the stopping rule's promise: for a linear problem the Gauss--Newton decrease is
+    # exactly the distance to the optimum in the metric A'A, below gtol * s^2
+    d = res.theta - exact
+    s2 = float(np.sum((A @ exact - b) ** 2)) / (200 - 4)
+    assert d @ (A.T @ A) @ d <= 1e-12 * s2
+    np.testing.assert_allclose(res.theta, exact, rtol=1e-6)
+
+
+def test_nonlinear_fit_matches_scipy():
+    rng = np.random.default_rng(1)
+    t = np.linspace(0, 4, 300)
+    y = 2.5 * np.exp(-1.3 * t) * np.cos(3.1 * t) + 0.01 * rng.normal(size=t.size)
+
+    def fn(th):
+        return (th[0] * np.exp(-th[1] * t) * np.cos(th[2] * t) - y) / 0.01
+
+    start = np.array([1.0, 0.5, 2.8])
+    ref = least_squares(fn, start, xtol=1e-14, ftol=1e-14, gtol=1e-14)
+    res = levenberg_marquardt(*_numeric(fn), start, gtol=1e-10)
+    assert res.converged, res.message
+    np.testing.assert_allclose(res.theta, ref.x, rtol=1e-6)
+    assert res.chi2 <= 2 * ref.cost + 1e-6
+    # statistical stop: the remaining Gauss-Newton step is tiny against the uncertainty
+    assert res.gn_decrease <= 1e-10 * res.chi2 / (t.size - 3)
+
+
+def test_only_active_parameters_move():
+    rng = np.random.default_rng(2)
+    A = rng.normal(size=(50, 3))
+    b = rng.normal(size=50)
+    start = np.array([0.3, -0.2, 0.7])
+    res = levenberg_marquardt(
+        lambda th: A @ th - b, lambda th: (A @ th - b, A), start, active=[0, 2], gtol=1e-12
+    )
+    assert res.theta[1] == start[1]
+    # the optimum over the active columns with the inactive one fixed
+    exact, *_ = np.linalg.lstsq(A[:, [0, 2]], b - A[:, 1] * start[1], rcond=None)
+    np.testing.assert_allclose(res.theta[[0, 2]], exact, rtol=1e-8)
+
+
+def test_failed_evaluations_are_rejected_not_propagated():
+    """A residual that is NaN outside a region (like a simulation that fails) only
+    rejects the trial step; the fit still reaches the optimum."""
+    t = np.linspace(0.1, 2, 50)
+    y = np.sqrt(0.8) * t
+
+    def fn(th):
+        if th[0] <= 0:
+            return np.full(t.size, np.nan)
+        return np.sqrt(th[0]) * t - y
+
+    res = levenberg_marquardt(*_numeric(fn), np.array([0.05]), gtol=1e-12)
+    assert res.converged and np.isfinite(res.chi2)
+    np.testing.assert_allclose(res.theta, [0.8], rtol=1e-6)
+
+
+def test_failure_at_the_start_is_reported():
+    res = levenberg_marquardt(
+        lambda th: np.full(3, np.inf), lambda th: (np.full(3, np.inf), np.zeros((3, 1))), [1.0]
+    )
+    assert not res.converged and "start" in res.message
+
+
+def test_iteration_limit_is_reported():
+    t = np.linspace(0, 4, 100)
+    y = np.exp(-1.3 * t)
+
+    def fn(th):
+        return np.exp(-th[0] * t) - y
+
+    res = levenberg_marquardt(*_numeric(fn), np.array([5.0]), max_iter=1, gtol=1e-14)
+    assert not res.converged and res.message == "iteration limit reached"
+
+
+@pytest.mark.slow
+def test_lm_and_optimistix_reach_the_same_optimum():
+    import jax
+
+    import jaxlift as jl
+    from jaxlift._fit import fit
+    from jaxlift._sequences import ramped_sequence
+
+    truth = {"beta": 0.6e9, "d": 500.0}
+    plant, _ = jl.with_params(jl.Plant(), (), truth)
+    ts, pwm = ramped_sequence([(0.0, 1.0), (0.45, 5.0), (0.2, 5.0), (0.0, 3.0)])
+    inputs = jl.Inputs.from_arrays(ts, pwm, np.full_like(ts, 800.0), 0.05)
+    sol = jl.simulate(plant, (), inputs)
+    log = jl.to_log(sol, inputs, jl.MeasurementModel(), jax.random.key(3), name="short")
+    init = {"beta": 0.9e9, "d": 300.0}
+    a = fit([log], free="beta,d", init=init, n_starts=1)
+    b = fit([log], free="beta,d", init=init, n_starts=1, method="optimistix")
+    assert a.converged and b.converged
+    # the same optimum, to well within the standard errors
+    for name in truth:
+        assert abs(a.params[name] - b.params[name]) < 0.05 * a.stderr_white[name]
+    assert a.chi2 <= b.chi2 + 0.05
