@@ -37,6 +37,7 @@ outside the priors' support give ``-inf``, never NaN.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -53,7 +54,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._effects import EFFECTS
-from ._fit import PARAMETER_SETS, Experiment, fit, make_experiments
+from ._fit import PARAMETER_SETS, Experiment, fit, make_experiments, resolve_free
 from ._log import Log
 from ._model import all_param_infos, model_params, with_params
 from ._params import ParameterError, ParamInfo, from_unconstrained, to_unconstrained
@@ -307,30 +308,14 @@ def _exp_hash(e: Experiment) -> str:
     return h.hexdigest()[:16]
 
 
-def _resolve_sample(sample, effects, infos) -> list[str]:
+def _resolve_sample(sample, effects) -> list[str]:
+    """Sampled parameter names: as ``--free`` of the fit (sets and names)."""
     if sample is None:
         return default_sample(effects)
-    if isinstance(sample, str):
-        sample = [s.strip() for s in sample.split(",") if s.strip()]
-    out: list[str] = []
-    for s in sample:
-        if s == "dynamic":
-            names = list(PARAMETER_SETS["dynamic"])
-        elif s == "motor":
-            names = list(PARAMETER_SETS["motor"])
-        elif s == "effects":
-            names = [n for e in make_effects(effects) for n in type(e).param_infos()]
-        elif s in infos:
-            names = [s]
-        else:
-            raise ParameterError(
-                f"--sample: unknown parameter {s!r}; valid names: sets dynamic, motor, "
-                f"effects and the parameters of this model {sorted(infos)}"
-            )
-        out.extend(n for n in names if n not in out)
-    if not out:
-        raise ParameterError("--sample: no parameters to sample")
-    return out
+    try:
+        return resolve_free(sample, make_effects(effects))
+    except ParameterError as err:
+        raise ParameterError(str(err).replace("--free:", "--sample:", 1)) from None
 
 
 def _ar1_stats(r: np.ndarray) -> tuple[float, float]:
@@ -379,7 +364,7 @@ def prepare_posterior(
     effs = make_effects(effects)
     eff_names = tuple(e.name for e in effs)
     infos_all = all_param_infos(effs)
-    names = _resolve_sample(sample, eff_names, infos_all)
+    names = _resolve_sample(sample, eff_names)
     say = progress or (lambda _line: None)
     if params is None:
         say("least squares: full staged fit from the nominal values (no --params given)")
@@ -545,26 +530,37 @@ def _ar1_loglik(r, rho, s):
     )
 
 
-def _make_single(problem: PosteriorProblem, max_steps: int = SIM_MAX_STEPS):
-    """The log-probability of one walker, ``f(theta, args)`` (not jitted), and its
-    ``args`` (arrays passed as arguments, not closed over: see STACK-NOTES)."""
-    names = problem.names
-    infos = [problem.infos[n] for n in names]
-    priors = [problem.priors[n] for n in names]
-    phys = [k for k, n in enumerate(names) if n not in NOISE_NAMES]
-    noise_idx = {NOISE_NAMES.index(n): k for k, n in enumerate(names) if n in NOISE_NAMES}
+def _log_prob_args(problem: PosteriorProblem):
+    """The arguments of the jitted log-probability (arrays passed, not closed over:
+    see STACK-NOTES)."""
     plant0, effs0 = with_params(Plant(), make_effects(problem.effects), problem.values)
-    ref = jnp.asarray(problem.theta_opt)
-    args = (
+    return (
         plant0,
         effs0,
         problem.experiments,
         jnp.asarray(problem.rho),
         jnp.asarray(problem.scale),
+        jnp.asarray(problem.theta_opt),
     )
 
+
+def _prior_key(problem: PosteriorProblem) -> tuple:
+    return tuple((n, problem.priors[n]) for n in problem.names)
+
+
+@functools.lru_cache(maxsize=32)
+def _single_fn(names: tuple[str, ...], effects: tuple[str, ...], prior_key: tuple,
+               max_steps: int):  # fmt: skip
+    """The log-probability of one walker, ``f(theta, args)`` (not jitted); cached by
+    configuration so that a resumed run in the same process compiles nothing new."""
+    infos_all = all_param_infos(make_effects(effects))
+    infos = [infos_all[n] if n in infos_all else _noise_info(n) for n in names]
+    priors = [p for _, p in prior_key]
+    phys = [k for k, n in enumerate(names) if n not in NOISE_NAMES]
+    noise_idx = {NOISE_NAMES.index(n): k for k, n in enumerate(names) if n in NOISE_NAMES}
+
     def f(theta, args):
-        plant0, effs0, experiments, rho, scale = args
+        plant0, effs0, experiments, rho, scale, ref = args
         xs = [from_unconstrained(info, theta[k]) for k, info in enumerate(infos)]
         inside = jnp.all(jnp.isfinite(theta))
         log_prior = jnp.zeros(())
@@ -591,7 +587,24 @@ def _make_single(problem: PosteriorProblem, max_steps: int = SIM_MAX_STEPS):
         ok = ok & jnp.isfinite(lp)
         return jnp.where(ok, lp, -jnp.inf)
 
-    return f, args
+    return f
+
+
+@functools.lru_cache(maxsize=32)
+def _batched_fn(names, effects, prior_key, max_steps, batch):
+    single = _single_fn(names, effects, prior_key, max_steps)
+    if batch == "vmap":
+        return jax.jit(jax.vmap(single, in_axes=(0, None)))
+    if batch == "map":
+        return jax.jit(lambda th, a: jax.lax.map(lambda t: single(t, a), th))
+    if batch == "single":
+        one = jax.jit(single)
+
+        def core(th, a):
+            return jnp.stack([one(t, a) for t in th])
+
+        return core
+    raise ValueError(f"batch must be 'vmap', 'map' or 'single', not {batch!r}")
 
 
 def make_log_prob(
@@ -612,18 +625,9 @@ def make_log_prob(
         (``-inf`` for failed solves / outside the prior support, never NaN). The jitted
         core is ``f.jitted(thetas, f.args)``.
     """
-    single, args = _make_single(problem, max_steps)
-    if batch == "vmap":
-        core = jax.jit(jax.vmap(single, in_axes=(0, None)))
-    elif batch == "map":
-        core = jax.jit(lambda th, a: jax.lax.map(lambda t: single(t, a), th))
-    elif batch == "single":
-        one = jax.jit(single)
-
-        def core(th, a):
-            return jnp.stack([one(t, a) for t in th])
-    else:
-        raise ValueError(f"batch must be 'vmap', 'map' or 'single', not {batch!r}")
+    key = (problem.names, problem.effects, _prior_key(problem), int(max_steps))
+    core = _batched_fn(*key, batch)
+    args = _log_prob_args(problem)
 
     def f(thetas):
         out = np.asarray(core(jnp.asarray(thetas, dtype=jnp.float64), args), dtype=np.float64)
@@ -953,10 +957,19 @@ def predictive(
 ) -> list[dict[str, np.ndarray]]:
     """Simulated height [m] and speed [m/s] of every log for each draw (unconstrained
     coordinates), ``[{"height": (D, N), "speed": (D, N), "ok": (D,)}]`` per log."""
-    names = problem.names
-    infos = [problem.infos[n] for n in names]
-    phys = [k for k, n in enumerate(names) if n not in NOISE_NAMES]
     plant0, effs0 = with_params(Plant(), make_effects(problem.effects), problem.values)
+    bs = max(1, min(batch_size, int(np.shape(thetas)[0])))
+    fn = _predictive_fn(problem.names, problem.effects, bs)
+    res = fn(jnp.asarray(thetas), (plant0, effs0, problem.experiments))
+    return [{"height": np.asarray(h), "speed": np.asarray(v), "ok": np.asarray(ok)}
+            for h, v, ok in res]  # fmt: skip
+
+
+@functools.lru_cache(maxsize=16)
+def _predictive_fn(names: tuple[str, ...], effects: tuple[str, ...], batch_size: int):
+    infos_all = all_param_infos(make_effects(effects))
+    infos = [infos_all[n] if n in infos_all else _noise_info(n) for n in names]
+    phys = [k for k, n in enumerate(names) if n not in NOISE_NAMES]
 
     def one(theta, args):
         plant0, effs0, experiments = args
@@ -968,11 +981,7 @@ def predictive(
             outs.append((sol.height, sol.speed, sol.ok))
         return outs
 
-    bs = max(1, min(batch_size, int(np.shape(thetas)[0])))
-    fn = jax.jit(lambda th, a: jax.lax.map(lambda t: one(t, a), th, batch_size=bs))
-    res = fn(jnp.asarray(thetas), (plant0, effs0, problem.experiments))
-    return [{"height": np.asarray(h), "speed": np.asarray(v), "ok": np.asarray(ok)}
-            for h, v, ok in res]  # fmt: skip
+    return jax.jit(lambda th, a: jax.lax.map(lambda t: one(t, a), th, batch_size=batch_size))
 
 
 # ------------------------------------------------------------------ whole job

@@ -49,7 +49,8 @@ def build_datatree(problem: PosteriorProblem, samples: dict, lp: np.ndarray, ext
         d = d[(d >= info.lower) & (d <= info.upper)][:4000]
         prior[n] = d[None, :]
     return az.from_dict(
-        {"posterior": post, "sample_stats": {"lp": lp}, "prior": prior}, attrs=attrs
+        {"posterior": post, "sample_stats": {"lp": lp}, "prior": prior},
+        attrs={"posterior": attrs},
     )
 
 
@@ -195,7 +196,7 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
         if run.converged
         else f"**NOT CONVERGED**: the step limit was reached after {run.iteration} steps; "
         f"{run.tau_factor:g} x max tau = {run.tau_factor * max(run.tau):.0f} steps would be "
-        "needed. The intervals below are provisional; run the same command again to go on."
+        "needed. The intervals below are provisional; run the same command again to go on"
     )
     rep.text(
         f"Logs: {', '.join(f'`{lg.name}`' for lg in logs)}. Model: baseline"
@@ -340,11 +341,7 @@ def _plot_prior_posterior(problem, samples, figs):
             ax.set_xlabel(f"{n} [{info.unit}]")
         ax.set_yticks([])
     axes[0][0].legend(fontsize=7)
-    fig.tight_layout()
-    p = figs / "prior_posterior.png"
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
-    return str(p)
+    return _save(fig, figs / "prior_posterior.png")
 
 
 def _plot_tau(run, figs):
@@ -358,11 +355,7 @@ def _plot_tau(run, figs):
     ax.set_ylabel("tau [steps]")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    p = figs / "tau.png"
-    fig.savefig(p, dpi=90)
-    plt.close(fig)
-    return str(p)
+    return _save(fig, figs / "tau.png")
 
 
 def _plot_air(phi, air, figs):
@@ -374,11 +367,14 @@ def _plot_air(phi, air, figs):
     ax.set_xlabel(f"gas volume fraction at {air['p_mean_pa_abs'] / 1e6:.1f} MPa [%]")
     ax.set_yticks([])
     ax.legend(fontsize=8)
+    return _save(fig, figs / "air_fraction.png")
+
+
+def _save(fig, path) -> str:
     fig.tight_layout()
-    p = figs / "air_fraction.png"
-    fig.savefig(p, dpi=90)
+    fig.savefig(path, dpi=90)
     plt.close(fig)
-    return str(p)
+    return str(path)
 
 
 def _plot_bands(log: Log, pr: dict, figs) -> list[tuple[str, str]]:

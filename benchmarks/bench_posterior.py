@@ -1,0 +1,189 @@
+# ruff: noqa: E402  (float64 must be switched on before anything else imports jax)
+"""Benchmark: the posterior's log-probability and the time to a converged emcee chain.
+
+Run from the repository root::
+
+    .venv/bin/python benchmarks/bench_posterior.py [--quick] [--full-steps N]
+
+Prints a table and writes the same text to ``benchmarks/results_posterior.txt``.
+
+Both parts use the two shipped 130 s logs ``data/lift_500kg.csv`` and
+``data/lift_1500kg.csv`` (100 Hz, height and speed), the baseline model, and the
+default sampled set ``beta, cf_con, cf_in, cf_out, d`` with the default AR(1)
+likelihood. The calibrated values come from a least-squares re-fit of the sampled set
+starting at the baseline part of ``data/truth.json`` (motor set at those values); the
+full multi-start fit of ``jaxlift fit`` is not part of what is timed.
+
+(a) Log-probability evaluations per second for one batch of 16 walkers (what emcee's
+    stretch move asks for at a time with 32 walkers): the jitted batch function (the
+    default ``jax.lax.map`` inside one ``jit``; ``vmap`` for comparison) against a
+    Python loop calling the jitted single-walker function on each walker. Target: the
+    batch >= 10x the loop.
+(b) Wall time until the chain is longer than 50 integrated autocorrelation times, 32
+    walkers. ``--quick``: a short chain (``--quick-steps``, default 300) gives the time
+    per step and a tau estimate; the time to 50 tau is *extrapolated* (and tau from a
+    short chain is an underestimate). Without ``--quick`` the real run goes until
+    converged or ``--full-steps`` (default 6000). Target: <= 10 min on 2 cores.
+"""
+
+from __future__ import annotations
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import argparse
+import datetime
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import jaxlift as jl
+from jaxlift._posterior import make_log_prob, prepare_posterior, sample_posterior
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+RESULTS = HERE / "results_posterior.txt"
+LINES: list[str] = []
+
+
+def say(text: str = "") -> None:
+    print(text, flush=True)
+    LINES.append(text)
+
+
+def _load() -> str:
+    try:
+        return "load average " + " ".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        return "load average n/a"
+
+
+def setup():
+    logs = [jl.read_log(ROOT / "data" / f) for f in ("lift_500kg.csv", "lift_1500kg.csv")]
+    truth = jl.load_params_json(ROOT / "data" / "truth.json", jl.all_param_infos("all"))
+    base = {k: v for k, v in truth.items() if k in jl.all_param_infos(())}
+    t0 = time.perf_counter()
+    problem = prepare_posterior(logs, params=base)
+    return logs, problem, time.perf_counter() - t0
+
+
+def bench_log_prob(problem, reps: int = 3) -> dict:
+    rng = np.random.default_rng(0)
+    th = rng.multivariate_normal(problem.theta_opt, problem.cov_theta, size=16)
+    out = {}
+    for mode in ("map", "vmap", "single"):
+        f = make_log_prob(problem, batch=mode)
+        t0 = time.perf_counter()
+        ref = f(th)
+        compile_s = time.perf_counter() - t0
+        times = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            lp = f(th)
+            times.append(time.perf_counter() - t0)
+        assert np.array_equal(np.isfinite(lp), np.isfinite(ref))
+        best = min(times)
+        out[mode] = {"batch_s": best, "evals_per_s": th.shape[0] / best, "first_s": compile_s}
+    return out
+
+
+def bench_chain(problem, steps: int, quick: bool) -> dict:
+    f = make_log_prob(problem)
+    with tempfile.TemporaryDirectory() as d:
+        t0 = time.perf_counter()
+        run = sample_posterior(
+            problem, Path(d) / "chain.h5", n_walkers=32, max_steps=steps, seed=0, chunk=50,
+            log_prob=f, progress=True,
+        )  # fmt: skip
+        wall = time.perf_counter() - t0
+    per_step = wall / max(run.iteration, 1)
+    tau = float(np.max(run.tau))
+    return {
+        "steps": run.iteration,
+        "wall_s": wall,
+        "per_step_s": per_step,
+        "tau_max": tau,
+        "tau": run.tau,
+        "converged": run.converged,
+        "to_50tau_s": 50 * tau * per_step if quick or not run.converged else wall,
+        "acceptance": run.acceptance,
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="extrapolate the time to 50 tau")
+    ap.add_argument("--quick-steps", type=int, default=300)
+    ap.add_argument("--full-steps", type=int, default=6000)
+    args = ap.parse_args()
+
+    say(f"# bench_posterior.py — {datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M} UTC")
+    say(
+        f"python {sys.version.split()[0]}, jax {jax.__version__}, {platform.machine()}, "
+        f"{os.cpu_count()} CPUs, {_load()} (shared machine)"
+    )
+    logs, problem, prep_s = setup()
+    say(
+        f"set-up (least-squares re-fit of {', '.join(problem.names)}, AR(1) noise model, "
+        f"Laplace covariance): {prep_s:.0f} s"
+    )
+    say(
+        "AR(1) noise model (rho, innovation scale / sensor noise) per log, height | speed: "
+        + "; ".join(
+            f"{e.name}: {problem.rho[i, 0]:.2f}, {problem.scale[i, 0]:.2f} | "
+            f"{problem.rho[i, 1]:.2f}, {problem.scale[i, 1]:.2f}"
+            for i, e in enumerate(problem.experiments)
+        )
+    )
+    say("")
+    say("## (a) log-probability evaluations per second, one batch of 16 walkers")
+    lp = bench_log_prob(problem)
+    for mode, label in (
+        ("map", "batch, jax.lax.map in one jit (default)"),
+        ("vmap", "batch, jax.vmap in one jit"),
+        ("single", "loop over walkers, jitted single-walker fn"),
+    ):
+        r = lp[mode]
+        say(
+            f"  {label:45s} {r['evals_per_s']:7.1f} evals/s  ({r['batch_s'] * 1e3:7.0f} ms per "
+            f"16; first call incl. compile {r['first_s']:.0f} s)"
+        )
+    best = max(("map", "vmap"), key=lambda m: lp[m]["evals_per_s"])
+    ratio = lp[best]["evals_per_s"] / lp["single"]["evals_per_s"]
+    say(
+        f"  ratio batch ({best}) / loop = {ratio:.2f}x   target >= 10x: "
+        f"{'PASS' if ratio >= 10 else 'MISS'}"
+    )
+    say(f"  ratio vmap / loop = {lp['vmap']['evals_per_s'] / lp['single']['evals_per_s']:.2f}x")
+    say("")
+    steps = args.quick_steps if args.quick else args.full_steps
+    kind = "EXTRAPOLATED from a short chain" if args.quick else "measured"
+    say(f"## (b) wall time to 50 tau, 32 walkers ({kind})")
+    ch = bench_chain(problem, steps, args.quick)
+    say(
+        f"  {ch['steps']} steps in {ch['wall_s']:.0f} s: {ch['per_step_s']:.2f} s per step; "
+        f"acceptance {ch['acceptance']:.2f}"
+    )
+    say(f"  tau per parameter [steps]: {np.array2string(ch['tau'], precision=1)}")
+    if args.quick or not ch["converged"]:
+        say(
+            f"  time to 50 tau = 50 x {ch['tau_max']:.1f} x {ch['per_step_s']:.2f} s = "
+            f"{ch['to_50tau_s'] / 60:.1f} min (EXTRAPOLATION"
+            + ("; tau from a short chain is a lower bound" if args.quick else "; not converged")
+            + ")"
+        )
+    else:
+        say(f"  converged after {ch['steps']} steps: {ch['wall_s'] / 60:.1f} min (measured)")
+    say(f"  target <= 10 min on 2 cores: {'PASS' if ch['to_50tau_s'] <= 600 else 'MISS'}")
+    RESULTS.write_text("\n".join(LINES) + "\n", encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
