@@ -78,7 +78,7 @@ __all__ = [
 ]
 
 #: Cost of a run whose simulation failed (finite: no NaN in a batch; gradient 0).
-FAILED_COST = 1e4
+FAILED_COST = 1e6
 #: A run is "oscillation-free" when its sustained oscillation RMS is below this [m/s].
 OSC_FREE_MPS = 0.5e-3
 

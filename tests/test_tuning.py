@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 import math
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -21,9 +23,11 @@ from jaxlift._tuning import (
     FAILED_COST,
     GainSpace,
     batch_models,
+    closed_loop_costs,
     evaluate_draws,
     parameter_draws,
     robust_objective,
+    stack_references,
     tune_gains,
 )
 
@@ -98,16 +102,30 @@ def test_robust_objective_is_mean_plus_cvar():
     assert float(robust_objective(c, alpha=0.4, tail_weight=0.5)) == pytest.approx(4.0 + 3.5)
 
 
-def test_failed_run_costs_finite_penalty():
-    """A plant that cannot lift the load (motor map gain near zero): the run fails or
-    goes nowhere; the batch still gives finite costs and gradients."""
-    bad = {k: float(v) for k, v in jl.get_params(PLANT).items()}
-    good = dict(bad)
-    bad["beta"] = 1.2e7  # extremely soft oil: the loop goes unstable
+def test_failed_run_costs_finite_penalty_and_finite_gradient():
+    """A batch in which one run fails (a stiff plant -- tiny oil volume, hard oil --
+    needs ~4x the solver steps; the step limit allows 2x): its cost is the finite
+    penalty, the other is untouched, and the gradient of the batch cost stays finite."""
+    good = {k: float(v) for k, v in jl.get_params(PLANT).items()}
+    bad = dict(good, V0=1e-5, beta=5e9)
+    ctrl = THESIS
     plants, effs = batch_models(PLANT, (), [good, bad])
-    c, ok, _ = evaluate_draws(PID().with_gains({"P": 400.0, "D": 20.0}), plants, effs, REF)
-    assert np.all(np.isfinite(c))
-    assert np.all((c == FAILED_COST) == ~ok)
+    n_good = int(simulate_closed_loop(PLANT, (), ctrl, REF).check().num_steps)
+    kw = dict(max_steps=2 * n_good)
+    c, ok, _ = evaluate_draws(ctrl, plants, effs, REF, **kw)
+    assert ok.tolist() == [True, False]
+    assert c[1] == FAILED_COST and np.isfinite(c[0]) and c[0] < FAILED_COST
+    space = GainSpace.for_controller(ctrl, ["P", "I", "D"])
+    refs = stack_references([REF])
+
+    def batch_cost(theta):
+        cc, _, _ = closed_loop_costs(
+            space.from_theta(theta), plants, effs, refs, batched_plants=True, **kw
+        )
+        return jnp.mean(cc)
+
+    g = jax.grad(batch_cost)(jnp.asarray(space.to_theta(ctrl)))
+    assert np.all(np.isfinite(np.asarray(g))) and np.any(np.asarray(g) != 0)
 
 
 @pytest.mark.slow
