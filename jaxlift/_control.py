@@ -39,7 +39,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._params import ParameterError, get_params, param, param_infos, replace_params
+from ._params import (
+    ParameterError,
+    get_params,
+    load_params_json,
+    param,
+    param_infos,
+    replace_params,
+)
 from ._plant import Plant
 
 __all__ = [
@@ -97,6 +104,11 @@ class AbstractController(eqx.Module):
     def gains(self, plant: Plant, x: Scalar, m_load: Scalar) -> tuple[Scalar, Scalar, Scalar]:
         """``(P [s/m], I [1/m], D [s^2/m])`` at height ``x`` [m] with load ``m_load`` [kg]."""
 
+    def _raw(self, plant, x, m_load, e, q_I, eta):
+        """``(I, u_raw)``: the integral gain and ``P e + q_I + D N (e - eta)``."""
+        P, I, D = self.gains(plant, x, m_load)  # noqa: E741
+        return I, P * e + q_I + D * self.N * (e - eta)
+
     def output(
         self,
         plant: Plant,
@@ -119,8 +131,7 @@ class AbstractController(eqx.Module):
                 keeps the value ``clip(u_raw)`` but gives ``du/du_raw = g`` to autodiff
                 (the describing-gain linearisation of :mod:`jaxlift._tuning`).
         """
-        P, I, D = self.gains(plant, x, m_load)  # noqa: E741
-        u_raw = P * e + q_I + D * self.N * (e - eta)
+        I, u_raw = self._raw(plant, x, m_load, e, q_I, eta)  # noqa: E741
         u = jnp.clip(u_raw, 0.0, 1.0)
         if sat_gain is not None:  # value clip(u_raw), derivative sat_gain
             u = jax.lax.stop_gradient(u) + sat_gain * (u_raw - jax.lax.stop_gradient(u_raw))
@@ -149,8 +160,7 @@ class AbstractController(eqx.Module):
         discretised exactly, the integral by forward Euler.
 
         Returns ``(u, u_raw, q_I_next, eta_next)``; ``u`` is held for one period."""
-        P, I, D = self.gains(plant, x, m_load)  # noqa: E741
-        u_raw = P * e + q_I + D * self.N * (e - eta)
+        I, u_raw = self._raw(plant, x, m_load, e, q_I, eta)  # noqa: E741
         u = jnp.clip(u_raw, 0.0, 1.0)
         q_next = q_I + T_c * (I * e + self.K_aw * (u - u_raw))
         eta_next = eta + (1.0 - jnp.exp(-self.N * T_c)) * (e - eta)
@@ -331,17 +341,8 @@ def controller_from_gains(values: Mapping[str, float], *, source: str = "") -> A
 def load_gains(path: str | os.PathLike) -> AbstractController:
     """Read a gains file (JSON ``{name: value}``, names from CONTROL.md; keys starting
     with ``_`` are comments) into a controller (see :func:`controller_from_gains`)."""
-    path = os.fspath(path)
-    try:
-        with open(path, encoding="utf-8") as fh:
-            data = json.load(fh)
-    except FileNotFoundError:
-        raise ParameterError(f"{path}: gains file not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise ParameterError(f"{path}: not a valid JSON gains file ({err})") from None
-    if not isinstance(data, dict):
-        raise ParameterError(f"{path}: expected a JSON object {{gain name: value}}")
-    return controller_from_gains(data, source=path)
+    known = {**param_infos(PID), **param_infos(ScheduledPID)}
+    return controller_from_gains(load_params_json(path, known), source=os.fspath(path))
 
 
 def save_gains(

@@ -185,7 +185,7 @@ def cmd_tune(args) -> int:
             eval_draws,
             refs[0],
             out,
-            noise_seed=args.report_noise_seed,
+            noise_seed=None if args.no_report_noise else args.report_noise_seed,
             report=rep,
             **_sim_kw(args),
         )
@@ -269,6 +269,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--noise-seed", type=int, default=None, help="tune with sensor noise")
     p.add_argument(
         "--report-noise-seed", type=int, default=0, help="noise seed of the report's noisy case"
+    )
+    p.add_argument(
+        "--no-report-noise", action="store_true", help="leave the noisy case out of the report"
     )
     p.add_argument("--rtol", type=float, default=1e-5, help="solver tolerance while tuning")
     p.add_argument("--seed", type=int, default=0, help="seed of the parameter draws")
