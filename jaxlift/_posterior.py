@@ -1117,9 +1117,10 @@ def posterior_draws(
             raise FileNotFoundError(f"{p}: not found; run `jaxlift posterior ... --out {out}`")
     with open(settings_path, encoding="utf-8") as fh:
         settings = json.load(fh)["problem"]
-    post = xr.open_datatree(nc, engine="h5netcdf")["posterior"].to_dataset()
     names = [n for n in settings["names"] if n not in NOISE_NAMES]
-    flat = {k: np.asarray(post[k]).ravel() for k in names}
+    with xr.open_datatree(nc, engine="h5netcdf") as tree:
+        post = tree["posterior"].to_dataset()
+        flat = {k: np.asarray(post[k]).ravel() for k in names}
     m = next(iter(flat.values())).size
     rng = np.random.default_rng(seed)
     idx = rng.choice(m, size=n, replace=n > m)
