@@ -80,7 +80,7 @@ def cmd_tune(args) -> int:
     if args.scheduled:
         start = ScheduledPID.from_pid(start)
 
-    print(f"nominal tuning: {args.steps} Adam steps ...", flush=True)
+    print(f"nominal tuning: {args.steps} L-BFGS evaluations ...", flush=True)
     nominal = tune_gains(
         start, plant, effects, refs, steps=args.steps, progress=True, rtol=args.rtol, **sim
     )
@@ -106,7 +106,7 @@ def cmd_tune(args) -> int:
             plants, effs = batch_models(plant, effects, tune_draws.draws)
             print(
                 f"robust tuning over {args.robust_draws} draws (mean + CVaR20): "
-                f"{args.steps} Adam steps ...",
+                f"{args.steps} L-BFGS evaluations ...",
                 flush=True,
             )
             robust = tune_gains(
@@ -148,7 +148,8 @@ def cmd_tune(args) -> int:
         f"reference: the thesis-like sequence (time scale {args.time_scale:g}). "
         f"Controller: {'scheduled' if args.scheduled else 'plain'} PID, "
         f"{form}; noise: {noise}. "
-        f"Adam on the log gains, {args.steps} steps. Written gains: **{chosen_name}** "
+        f"L-BFGS on the log gains (forward-mode gradients through the closed loop), "
+        f"{args.steps} evaluations. Written gains: **{chosen_name}** "
         "(`gains.json`)."
     )
     rows = []
@@ -263,7 +264,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     _common(p)
     p.add_argument("--posterior", help="posterior directory (jaxlift posterior)")
     p.add_argument("--scheduled", action="store_true", help="tune the scheduled PID (18 + N)")
-    p.add_argument("--steps", type=int, default=30, help="Adam steps per tuning")
+    p.add_argument("--steps", type=int, default=30, help="evaluations per tuning (L-BFGS)")
     p.add_argument("--robust-draws", type=int, default=16, help="draws for robust tuning")
     p.add_argument("--eval-draws", type=int, default=100, help="held-out draws for the report")
     p.add_argument("--noise-seed", type=int, default=None, help="tune with sensor noise")

@@ -37,6 +37,7 @@ import os
 import time
 from collections.abc import Mapping, Sequence
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -189,6 +190,7 @@ def closed_loop_costs(
     *,
     batched_plants: bool = False,
     weights: CostWeights | None = None,
+    batch: str = "map",
     **sim_kw,
 ) -> tuple[Float[Array, "B L"], Float[Array, "B L"], Figures]:
     """Costs of ``controller`` on plants x references (loads): arrays ``(B, L)`` of
@@ -201,7 +203,9 @@ def closed_loop_costs(
         lambda p, e, r: _run(controller, p, e, r, sim_kw, weights), in_axes=(None, None, 0)
     )
     if batched_plants:
-        return eqx.filter_vmap(lambda p, e: run_ref(p, e, references))(plants, effects)
+        if batch == "vmap":
+            return eqx.filter_vmap(lambda p, e: run_ref(p, e, references))(plants, effects)
+        return jax.lax.map(lambda pe: run_ref(pe[0], pe[1], references), (plants, effects))
     c, ok, fig = run_ref(plants, effects, references)
     return c[None], ok[None], jax.tree.map(lambda a: a[None], fig)
 
@@ -266,10 +270,13 @@ def tune_gains(
     weights: CostWeights | None = None,
     progress: bool = False,
     rtol: float = 1e-5,
+    method: str = "lbfgs",
+    gradient: str = "forward",
     **sim_kw,
 ) -> TuneResult:
-    """Tune the gains of ``controller`` by Adam on the log gains, gradients through the
-    closed-loop simulation.
+    """Tune the gains of ``controller`` on the log gains, gradients through the
+    closed-loop simulation: L-BFGS (``scipy.optimize.minimize(method="L-BFGS-B",
+    jac=True)`` driven by the JAX value and gradient) or Adam (optax).
 
     Args:
         controller: starting gains (:class:`~jaxlift.PID` or :class:`~jaxlift.ScheduledPID`).
@@ -279,8 +286,12 @@ def tune_gains(
         names: which gains to tune (see :meth:`GainSpace.for_controller`).
         robust: objective ``mean + tail_weight * CVaR_alpha`` over the draws (else the
             mean over the draws; with one plant: the nominal cost).
-        steps: Adam steps (budget: ``steps`` value-and-gradient evaluations).
+        steps: budget: ``steps`` value-and-gradient evaluations (Adam: steps; L-BFGS:
+            function evaluations incl. line search), plus one at the end for Adam.
         learning_rate: Adam step in log-gain units.
+        method: ``"lbfgs"`` (default) or ``"adam"``.
+        gradient: ``"forward"`` (``jax.jacfwd`` with ``diffrax.ForwardMode``: cheaper
+            for the 5--20 gains, default) or ``"reverse"`` (``RecursiveCheckpointAdjoint``).
         weights: cost scales (:class:`~jaxlift._performance.CostWeights`).
         progress: tqdm progress bar (stderr).
         rtol: solver tolerance during tuning; ``sim_kw``: ``sampled``, ``T_c``,
@@ -298,9 +309,18 @@ def tune_gains(
 
     cfg = dict(batched=batched_plants, robust=robust, alpha=alpha, tail_weight=tail_weight)
 
-    def vg(theta):
-        return _objective_value_and_grad(theta, space, plant, effects, refs, weights, cfg, sim_kw)
+    if gradient not in ("forward", "reverse") or method not in ("adam", "lbfgs"):
+        raise ValueError(
+            f"gradient must be forward/reverse, method adam/lbfgs: {gradient}, {method}"
+        )
 
+    def vg(theta):
+        return _objective_value_and_grad(
+            theta, space, plant, effects, refs, weights, cfg, sim_kw, gradient
+        )
+
+    if method == "lbfgs":
+        return _tune_lbfgs(vg, space, controller, steps, progress, t_start)
     opt = optax.apply_if_finite(optax.adam(learning_rate), max_consecutive_errors=5)
     theta = jnp.asarray(space.to_theta(controller))
     state = opt.init(theta)
@@ -337,6 +357,54 @@ def tune_gains(
     )
 
 
+class _BudgetSpent(Exception):
+    """Raised inside L-BFGS's objective when the evaluation budget is spent."""
+
+
+def _tune_lbfgs(vg, space, controller, steps, progress, t_start) -> TuneResult:
+    from scipy.optimize import minimize
+    from tqdm.auto import tqdm
+
+    history: list[float] = []
+    history_s: list[float] = []
+    best: list = [math.inf, None, 0]
+    bar = tqdm(total=steps, desc="tuning (L-BFGS)", disable=not progress, leave=False)
+
+    def fun(th):
+        if len(history) >= steps:
+            raise _BudgetSpent
+        (val, n_bad), grad = vg(jnp.asarray(th))
+        val, grad = float(val), np.asarray(grad, dtype=float)
+        history.append(val)
+        history_s.append(time.perf_counter() - t_start)
+        if val < best[0]:
+            best[:] = [val, np.array(th), int(n_bad)]
+        bar.update(1)
+        bar.set_postfix(cost=f"{val:.4g}", best=f"{best[0]:.4g}")
+        if not (math.isfinite(val) and np.all(np.isfinite(grad))):
+            return FAILED_COST, np.zeros_like(grad)
+        return val, grad
+
+    theta0 = np.asarray(space.to_theta(controller), dtype=float)
+    try:  # the budget is exact: scipy's maxfun is only checked between iterations
+        minimize(fun, theta0, jac=True, method="L-BFGS-B", options=dict(maxiter=steps))
+    except _BudgetSpent:
+        pass
+    bar.close()
+    return TuneResult(
+        controller=space.from_theta(jnp.asarray(best[1])),
+        initial=controller,
+        initial_cost=history[0],
+        best_cost=best[0],
+        history=history,
+        history_s=history_s,
+        n_failed=best[2],
+        n_evaluations=len(history),
+        wall_s=time.perf_counter() - t_start,
+        names=space.names,
+    )
+
+
 def _objective(theta, space, plant, effects, refs, weights, cfg, sim_kw):
     ctrl = space.from_theta(theta)
     c, ok, _ = closed_loop_costs(
@@ -351,7 +419,19 @@ def _objective(theta, space, plant, effects, refs, weights, cfg, sim_kw):
 
 
 # module level, so that repeated tunings of the same problem shape compile once
-_objective_value_and_grad = eqx.filter_jit(jax.value_and_grad(_objective, has_aux=True))
+@eqx.filter_jit
+def _objective_value_and_grad(theta, space, plant, effects, refs, weights, cfg, sim_kw, mode):
+    if mode == "reverse":
+        f = lambda th: _objective(th, space, plant, effects, refs, weights, cfg, sim_kw)
+        return jax.value_and_grad(f, has_aux=True)(theta)
+    kw = dict(sim_kw, adjoint=diffrax.ForwardMode())
+
+    def f(th):
+        out = _objective(th, space, plant, effects, refs, weights, cfg, kw)
+        return out[0], out
+
+    grad, out = jax.jacfwd(f, has_aux=True)(theta)
+    return out, grad
 
 
 # ------------------------------------------------------------------ parameter draws

@@ -15,7 +15,7 @@
 # # Gain tuning by gradient through the closed-loop simulation
 #
 # The thesis tuned its PID by hand and found a scheduled PID cumbersome to tune. Here
-# the gains are tuned by gradient descent (Adam on the log gains) through the
+# the gains are tuned by a gradient method (L-BFGS on the log gains) through the
 # closed-loop simulation of the calibrated model, and then checked against what we
 # do not know about the plant: parameter draws (the posterior where it exists, else
 # the least-squares covariance of the fit), noise, and the effects the diagnosis found.
@@ -30,7 +30,7 @@
 # ```
 #
 # `JAXLIFT_NOTEBOOK_BUDGET=small` makes it quick (used by the tests): a shortened
-# reference, a few Adam steps, a handful of draws.
+# reference, a few L-BFGS evaluations, a handful of draws.
 
 # %%
 import os
@@ -115,8 +115,8 @@ for k, v in figures(sol).as_dict().items():
 
 # %% [markdown]
 # ## Nominal tuning
-# Adam on `log P, log I, log D, log N, log K_aw`; each step is one simulation and its
-# reverse-mode gradient (diffrax, `RecursiveCheckpointAdjoint`).
+# L-BFGS on `log P, log I, log D, log N, log K_aw`; each evaluation is one simulation
+# with its forward-mode gradient (`jax.jacfwd` through diffrax, `ForwardMode`).
 
 # %%
 nominal = tune_gains(start, plant, effects, refs, steps=STEPS)

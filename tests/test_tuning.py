@@ -62,7 +62,7 @@ def test_tuned_gains_beat_thesis_gains():
     tuned = _cost(res.controller)  # re-simulated at the default (tighter) tolerance
     assert res.best_cost < res.initial_cost
     assert tuned < 0.7 * thesis, (tuned, thesis)
-    assert res.n_failed == 0 and len(res.history) == 13
+    assert res.n_failed == 0 and len(res.history) == res.n_evaluations <= 14
     # deterministic
     again = tune_gains(START, PLANT, (), [REF], steps=3)
     first = tune_gains(START, PLANT, (), [REF], steps=3)
