@@ -220,7 +220,7 @@ def main() -> int:
     out("|---|---:|---:|---:|---:|")
     out(f"| scipy Nelder-Mead | {len(nm2)} costs | {nm2_best:.4g} | {nm2_time:.1f} | - |")
     out(
-        f"| jaxlift L-BFGS (fwd-mode grad) | {ts2.n_evaluations} value+grad | "
+        f"| jaxlift L-BFGS (reverse-mode grad) | {ts2.n_evaluations} value+grad | "
         f"{ts2.best_cost:.4g} | {ts2.wall_s:.1f} | {s_compile:.1f} |"
     )
     r2 = t_beat2 / nm2_time
