@@ -53,11 +53,12 @@ def main() -> None:
     held = [jl.read_log(ROOT / "data" / "validation_1000kg.csv")]
     say(f"logs: {', '.join(f'{lg.name} ({lg.time_s[-1]:.0f} s, {lg.n} samples)' for lg in logs)}")
     t0 = time.perf_counter()
-    base = fit(logs, staged=True, n_starts=2, seed=0)
+    base = fit(logs, staged=True, n_starts=2, seed=0, progress=print)
     t_fit = time.perf_counter() - t0
     marks: dict[str, float] = {}
 
     def progress(line: str) -> None:
+        print(f"  [{time.perf_counter() - t0:6.1f} s] {line}", flush=True)
         if line.startswith("score screens"):
             marks["screens"] = time.perf_counter()
 

@@ -126,7 +126,28 @@ def test_lm_and_optimistix_reach_the_same_optimum():
     a = fit([log], free="beta,d", init=init, n_starts=1)
     b = fit([log], free="beta,d", init=init, n_starts=1, method="optimistix")
     assert a.converged and b.converged
-    # the same optimum, to well within the standard errors
+    # the same optimum: fit()'s stopping rule (gtol = 0.01) promises a remaining step
+    # below sqrt(0.01) = 0.1 standard errors and a chi2 above the optimum's by less than
+    # 0.01 s^2; optimistix's Cauchy test stops at least as close here
+    s2 = a.chi2 / (a.n_residuals - 3)
     for name in truth:
-        assert abs(a.params[name] - b.params[name]) < 0.05 * a.stderr_white[name]
-    assert a.chi2 <= b.chi2 + 0.05
+        assert abs(a.params[name] - b.params[name]) < 0.2 * a.stderr_white[name]
+    assert a.chi2 <= b.chi2 + 0.01 * s2
+
+
+def test_overflowing_jacobian_rejects_the_step():
+    """Where the Jacobian overflows (a simulation on the edge of failing), the step is
+    rejected as if the residuals had failed."""
+    t = np.linspace(0.1, 2, 50)
+    y = 0.8 * t
+    fn, jac = _numeric(lambda th: th[0] * t - y)
+
+    def bad_jac(th):
+        r, J = jac(th)
+        return (r, np.full_like(J, 1e300)) if th[0] > 0.9 else (r, J)
+
+    res = levenberg_marquardt(fn, bad_jac, np.array([5.0]), gtol=1e-12)
+    assert not (res.converged and res.theta[0] > 0.9)
+    res = levenberg_marquardt(fn, bad_jac, np.array([0.1]), gtol=1e-12)
+    assert res.converged
+    np.testing.assert_allclose(res.theta, [0.8], rtol=1e-6)
