@@ -47,13 +47,13 @@ from scipy.optimize import minimize
 import jaxlift as jl
 from jaxlift._closed_loop import simulate_closed_loop, thesis_reference
 from jaxlift._control import PID, THESIS_PID, ScheduledPID
-from jaxlift._performance import cost_from_figures, figures
 from jaxlift._tuning import (
     GainSpace,
     _run,
     batch_models,
     parameter_draws,
     tune_gains,
+    tuning_cost,
 )
 
 HERE = Path(__file__).resolve().parent
@@ -100,8 +100,9 @@ def main() -> int:
 
     @jax.jit
     def cost(theta):
-        sol = simulate_closed_loop(plant, effects, space.from_theta(theta), ref, rtol=RTOL)
-        c = cost_from_figures(figures(sol))
+        ctrl = space.from_theta(theta)
+        sol = simulate_closed_loop(plant, effects, ctrl, ref, rtol=RTOL)
+        c = tuning_cost(ctrl, plant, sol)
         return jnp.where(sol.ok & jnp.isfinite(c), c, 1e4)
 
     lines = []
@@ -191,8 +192,9 @@ def main() -> int:
     def cost2(theta):
         cs = []
         for r in refs2:
-            sol = simulate_closed_loop(plant, effects, sspace.from_theta(theta), r, rtol=RTOL)
-            c = cost_from_figures(figures(sol))
+            ctrl = sspace.from_theta(theta)
+            sol = simulate_closed_loop(plant, effects, ctrl, r, rtol=RTOL)
+            c = tuning_cost(ctrl, plant, sol)
             cs.append(jnp.where(sol.ok & jnp.isfinite(c), c, 1e4))
         return jnp.mean(jnp.stack(cs))
 

@@ -51,7 +51,6 @@ def cmd_tune(args) -> int:
     from jaxlift._cli import _read_logs
     from jaxlift._closed_loop import simulate_closed_loop, thesis_reference
     from jaxlift._control import PID, THESIS_PID, ScheduledPID, save_gains
-    from jaxlift._performance import cost_from_figures, figures
     from jaxlift._report import Report
     from jaxlift._tuning import (
         batch_models,
@@ -59,6 +58,7 @@ def cmd_tune(args) -> int:
         plot_response,
         robustness_report,
         tune_gains,
+        tuning_cost,
     )
 
     out = pathlib.Path(args.out)
@@ -157,8 +157,7 @@ def cmd_tune(args) -> int:
         costs = []
         for ref in refs:
             sol = simulate_closed_loop(plant, effects, ctrl, ref, **sim)
-            fig = figures(sol)
-            costs.append(float(cost_from_figures(fig)) if bool(sol.ok) else float("inf"))
+            costs.append(float(tuning_cost(ctrl, plant, sol)) if bool(sol.ok) else float("inf"))
         rows.append(dict(gains=name, nominal_cost=float(np.mean(costs)), **ctrl.gain_values()))
     rep.heading("Gains and nominal cost")
     rep.table(rows, floatfmt=".4g")
@@ -202,8 +201,8 @@ def cmd_control_simulate(args) -> int:
 
     from jaxlift._closed_loop import simulate_closed_loop, thesis_reference
     from jaxlift._control import PID, THESIS_PID, load_gains
-    from jaxlift._performance import cost_from_figures, figures
-    from jaxlift._tuning import plot_response
+    from jaxlift._performance import figures
+    from jaxlift._tuning import plot_response, tuning_cost
 
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -228,7 +227,7 @@ def cmd_control_simulate(args) -> int:
     label = f"{ctrl.kind} ({args.gains or 'thesis gains'})"
     plot_response([(label, sol)], out / "response.png", f"{args.load:g} kg, {params_path}")
     figs = fig.as_dict()
-    figs["cost"] = float(cost_from_figures(fig))
+    figs["cost"] = float(tuning_cost(ctrl, plant, sol))
     with open(out / "figures.json", "w", encoding="utf-8") as fh:
         json.dump(figs, fh, indent=1)
     print(f"gains: {ctrl.gain_values()}")

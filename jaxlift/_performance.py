@@ -41,6 +41,7 @@ __all__ = [
     "bandpass",
     "CostWeights",
     "cost_from_figures",
+    "noise_amplification",
     "BAND_HZ",
     "SETTLE_S",
     "SHIFT_WINDOW_S",
@@ -177,22 +178,53 @@ def figures(sol: ClosedLoopSolution) -> Figures:
     )
 
 
+def noise_amplification(controller, plant, x, m_load, sampled_T_c: float | None = None):
+    """RMS [-] of the part of ``u_raw`` driven by the speed-sensor noise (CONTROL.md:
+    held for ``T_s`` = 10 ms, sigma = sqrt(1e-7 / T_s)), averaged over each 10 ms hold
+    as the effort figure is, for the linear law (no saturation), at height ``x`` [m] and
+    load ``m_load`` [kg]. With ``a = N T_s`` and ``g = (1 - exp(-a)) / a`` (the hold
+    average of the filter's decay) the continuous law gives
+    ``sigma^2 [P^2 + 2 P D N g + 2 (D N g)^2 / (1 + exp(-a))]``; the sampled law (clock
+    ``T_c = T_s``, ``alpha = 1 - exp(-N T_c)``) ``sigma^2 [P^2 + 2 P D N + 2 (D N)^2 /
+    (2 - alpha)]``. Differentiable in the gains."""
+    from ._closed_loop import NOISE_POWER, NOISE_TS
+
+    P, _, D = controller.gains(plant, jnp.asarray(x), jnp.asarray(m_load))
+    N = controller.N
+    sigma2 = NOISE_POWER / NOISE_TS
+    if sampled_T_c is None:
+        a = N * NOISE_TS
+        g = -jnp.expm1(-a) / a
+        ms = P**2 + 2 * P * D * N * g + 2 * (D * N * g) ** 2 / (1 + jnp.exp(-a))
+    else:
+        alpha = -jnp.expm1(-N * sampled_T_c)
+        ms = P**2 + 2 * P * D * N + 2 * (D * N) ** 2 / (2 - alpha)
+    return jnp.sqrt(sigma2 * ms)
+
+
 class CostWeights(eqx.Module):
     """Scales of the tuning cost ``J = sum((figure / scale)^2)`` (a figure at its
     scale costs 1). Defaults: tracking 2 mm/s, oscillation 1 mm/s, sustained
-    oscillation 0.3 mm/s, offset after each shift 2 mm/s, effort 20 1/s."""
+    oscillation 0.3 mm/s, offset after each shift 2 mm/s, effort 20 1/s, noise
+    amplification (:func:`noise_amplification`, RMS duty) 0.5 -- the last keeps a
+    noise-free tuning from running to gains that only a noise-free sensor allows."""
 
     tracking: float = eqx.field(static=True, default=2e-3)
     oscillation: float = eqx.field(static=True, default=1e-3)
     sustained: float = eqx.field(static=True, default=0.3e-3)
     offset: float = eqx.field(static=True, default=2e-3)
     effort: float = eqx.field(static=True, default=20.0)
+    noise: float = eqx.field(static=True, default=0.5)
 
 
-def cost_from_figures(fig: Figures, weights: CostWeights | None = None) -> Scalar:
+def cost_from_figures(
+    fig: Figures, weights: CostWeights | None = None, noise_amp: Scalar | None = None
+) -> Scalar:
     """The differentiable tuning cost of one run (dimensionless, see
-    :class:`CostWeights`); a shift that is not crossed contributes 0."""
+    :class:`CostWeights`); a shift that is not crossed contributes 0; ``noise_amp``:
+    the controller's :func:`noise_amplification` (left out if None)."""
     w = CostWeights() if weights is None else weights
+    extra = 0.0 if noise_amp is None else (noise_amp / w.noise) ** 2
     off = jnp.where(jnp.isnan(fig.shift_offset), 0.0, fig.shift_offset)
     return (
         (fig.tracking_rms / w.tracking) ** 2
@@ -200,4 +232,5 @@ def cost_from_figures(fig: Figures, weights: CostWeights | None = None) -> Scala
         + (fig.osc_sustained / w.sustained) ** 2
         + jnp.sum((off / w.offset) ** 2)
         + (fig.effort / w.effort) ** 2
+        + extra
     )

@@ -56,7 +56,7 @@ from ._control import SCHEDULE_MASSES, AbstractController, ScheduledPID
 from ._effects import AbstractEffect
 from ._model import all_param_infos, with_params
 from ._params import ParameterError, from_unconstrained, to_unconstrained
-from ._performance import CostWeights, Figures, cost_from_figures, figures
+from ._performance import CostWeights, Figures, cost_from_figures, figures, noise_amplification
 from ._plant import Plant
 from ._simulate import Inputs, _canonical, _split, initial_state, plant_signals_and_derivative
 
@@ -67,6 +67,7 @@ __all__ = [
     "FAILED_COST",
     "OSC_FREE_MPS",
     "tune_gains",
+    "tuning_cost",
     "closed_loop_costs",
     "robust_objective",
     "parameter_draws",
@@ -174,10 +175,19 @@ def _sanitize(sol: ClosedLoopSolution) -> ClosedLoopSolution:
     )  # fmt: skip
 
 
+def tuning_cost(ctrl, plant, sol: ClosedLoopSolution, weights=None) -> Float[Array, ""]:
+    """The tuning cost of a run: :func:`~jaxlift._performance.cost_from_figures` with
+    the controller's noise amplification at the middle of the lift (the same function
+    in tuning and reports)."""
+    amp = noise_amplification(ctrl, plant, 0.5 * plant.x_max, sol.reference.m_load, sol.T_c)
+    return cost_from_figures(figures(sol), weights, amp)
+
+
 def _run(ctrl, plant, effects, ref, sim_kw, weights):
     sol = simulate_closed_loop(plant, effects, ctrl, ref, **sim_kw)
-    fig = figures(_sanitize(sol))
-    cost = cost_from_figures(fig, weights)
+    sol = _sanitize(sol)
+    fig = figures(sol)
+    cost = tuning_cost(ctrl, plant, sol, weights)
     ok = sol.ok & jnp.isfinite(cost)
     return jnp.where(ok, cost, FAILED_COST), ok, fig
 

@@ -47,7 +47,7 @@ import numpy as np  # noqa: E402
 import jaxlift as jl  # noqa: E402
 from jaxlift._closed_loop import simulate_closed_loop, thesis_reference  # noqa: E402
 from jaxlift._control import PID, THESIS_PID, save_gains  # noqa: E402
-from jaxlift._performance import cost_from_figures, figures  # noqa: E402
+from jaxlift._performance import figures  # noqa: E402
 from jaxlift._report import Report  # noqa: E402
 from jaxlift._tuning import (  # noqa: E402
     batch_models,
@@ -56,6 +56,7 @@ from jaxlift._tuning import (  # noqa: E402
     plot_response,
     stability_table,
     tune_gains,
+    tuning_cost,
 )
 
 SMALL = os.environ.get("JAXLIFT_NOTEBOOK_BUDGET") == "small"
@@ -104,7 +105,7 @@ def nominal_cost(ctrl):
     costs = []
     for ref in refs:
         sol = simulate_closed_loop(plant, effects, ctrl, ref)
-        costs.append(float(cost_from_figures(figures(sol))) if bool(sol.ok) else np.inf)
+        costs.append(float(tuning_cost(ctrl, plant, sol)) if bool(sol.ok) else np.inf)
     return float(np.mean(costs))
 
 

@@ -33,9 +33,9 @@ import jaxlift as jl
 from jaxlift._closed_loop import Reference, SampledFilterWarning, simulate_closed_loop
 from jaxlift._closed_loop import thesis_reference as make_ref
 from jaxlift._control import PID, THESIS_PI, THESIS_PID, THESIS_PID_NOISE, ScheduledPID
-from jaxlift._performance import cost_from_figures, figures
+from jaxlift._performance import figures
 from jaxlift._report import Report
-from jaxlift._tuning import plot_response, stability_table, tune_gains
+from jaxlift._tuning import plot_response, stability_table, tune_gains, tuning_cost
 
 FIG_KEYS = [
     "tracking_rms_mmps",
@@ -57,7 +57,7 @@ def run(plant, effects, ctrl, ref, **kw):
         warnings.simplefilter("ignore", SampledFilterWarning)
         sol = simulate_closed_loop(plant, effects, ctrl, ref, **kw)
     row = figures(sol).as_dict()
-    row["cost"] = float(cost_from_figures(figures(sol)))
+    row["cost"] = float(tuning_cost(ctrl, plant, sol))
     row["ok"] = bool(sol.ok)
     row["sim_s"] = time.perf_counter() - t
     row["steps"] = int(sol.num_steps)

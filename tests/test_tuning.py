@@ -18,7 +18,6 @@ import pytest
 import jaxlift as jl
 from jaxlift._closed_loop import Reference, simulate_closed_loop
 from jaxlift._control import PID, THESIS_PID, load_gains
-from jaxlift._performance import cost_from_figures, figures
 from jaxlift._tuning import (
     FAILED_COST,
     GainSpace,
@@ -29,6 +28,7 @@ from jaxlift._tuning import (
     robust_objective,
     stack_references,
     tune_gains,
+    tuning_cost,
 )
 
 CALIBRATED = {"beta": 4.0e8, "cf_con": 1.0, "cf_in": 13.5, "cf_out": 770.0, "d": 560.0}
@@ -53,7 +53,7 @@ def fit_dir(tmp_path_factory):
 
 def _cost(ctrl, plant=PLANT):
     sol = simulate_closed_loop(plant, (), ctrl, REF).check()
-    return float(cost_from_figures(figures(sol)))
+    return float(tuning_cost(ctrl, plant, sol))
 
 
 def test_tuned_gains_beat_thesis_gains():
@@ -134,9 +134,11 @@ def test_robust_tuning_has_better_worst_case_on_held_out_draws(fit_dir):
     tune_set, held_out = draws.split(6)
     nominal = tune_gains(START, PLANT, (), [REF], steps=10)
     plants, effs = batch_models(PLANT, (), tune_set.draws)
+    # as `jaxlift tune` does: the robust tuning refines the nominal gains
     robust = tune_gains(
-        START, plants, effs, [REF], batched_plants=True, robust=True, steps=10, alpha=0.34
-    )
+        nominal.controller, plants, effs, [REF], batched_plants=True, robust=True, steps=10,
+        alpha=0.34,
+    )  # fmt: skip
     hp, he = batch_models(PLANT, (), held_out.draws)
     c_nom, ok_nom, _ = evaluate_draws(nominal.controller, hp, he, REF)
     c_rob, ok_rob, _ = evaluate_draws(robust.controller, hp, he, REF)
