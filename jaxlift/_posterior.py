@@ -905,7 +905,7 @@ def air_verdict(phi_samples: np.ndarray, p_mean: float, has_hose: bool,
             ),
         )
     text = (
-        f"Between {max(lo, 0) * 100:.2g} and {max(hi, 0) * 100:.2g} % gas by volume at "
+        f"Between {max(lo, 0) * 100:.3g} and {max(hi, 0) * 100:.3g} % gas by volume at "
         f"{p_mpa:.1f} MPa (90 % credible interval, attributing all softening to air); "
         f"{action}."
     )

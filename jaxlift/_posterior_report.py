@@ -351,9 +351,9 @@ def _plot_tau(run, figs):
         ax.plot(it, tau, "o-", label="max tau")
         n = np.linspace(0, max(it), 50)
         ax.plot(n, n / run.tau_factor, "--", color="0.5", label=f"steps / {run.tau_factor:g}")
+        ax.legend(fontsize=8)
     ax.set_xlabel("steps")
     ax.set_ylabel("tau [steps]")
-    ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     return _save(fig, figs / "tau.png")
 
