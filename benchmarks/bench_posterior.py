@@ -206,13 +206,19 @@ def main() -> int:
         tau = max(v for v in res["tau"].values())
         say("")
         say(f"## (b') measured: `jaxlift posterior` run in {args.from_run} (32 walkers)")
+        steps_run = res["steps"] - res["resumed_from"]
+        timing = (
+            f"{steps_run} steps in {res['wall_s_this_run'] / 60:.1f} min of sampling "
+            f"({res['wall_s_this_run'] / steps_run:.2f} s per step)"
+            if steps_run > 0
+            else "its last invocation only wrote the outputs: no timing in posterior.json"
+        )
         say(
-            f"  {res['steps']} steps in {res['wall_s_this_run'] / 60:.1f} min of sampling "
-            f"({res['wall_s_this_run'] / max(res['steps'], 1):.2f} s per step); max tau "
-            f"{tau:.1f}; {res['tau_factor']:g} x tau = {res['tau_factor'] * tau:.0f} steps; "
+            f"  {res['steps']} steps in the chain; {timing}; max tau {tau:.1f}; "
+            f"{res['tau_factor']:g} x tau = {res['tau_factor'] * tau:.0f} steps; "
             + ("CONVERGED" if res["converged"] else "NOT converged within the step limit")
         )
-        if res["converged"]:
+        if res["converged"] and res["resumed_from"] == 0:
             ok = res["wall_s_this_run"] <= 600
             say(f"  target <= 10 min on 2 cores: {'PASS' if ok else 'MISS'} (measured)")
     RESULTS.write_text("\n".join(LINES) + "\n", encoding="utf-8")
