@@ -83,6 +83,7 @@ def test_law_clips_and_stops():
     assert float(out.u) == 0.0 and float(out.dq_I) == 0.0 and float(out.deta) == 0.0
 
 
+@pytest.mark.slow
 def test_sampled_converges_to_continuous():
     cont = simulate_closed_loop(PLANT, (), PID_AW, REF).check()
     errs = []

@@ -56,6 +56,7 @@ def _cost(ctrl, plant=PLANT):
     return float(tuning_cost(ctrl, plant, sol))
 
 
+@pytest.mark.slow
 def test_tuned_gains_beat_thesis_gains():
     res = tune_gains(START, PLANT, (), [REF], steps=12)
     thesis = _cost(THESIS)
@@ -102,6 +103,7 @@ def test_robust_objective_is_mean_plus_cvar():
     assert float(robust_objective(c, alpha=0.4, tail_weight=0.5)) == pytest.approx(4.0 + 3.5)
 
 
+@pytest.mark.slow
 def test_failed_run_costs_finite_penalty_and_finite_gradient():
     """A batch in which one run fails (a stiff plant -- tiny oil volume, hard oil --
     needs ~4x the solver steps; the step limit allows 2x): its cost is the finite
