@@ -182,7 +182,7 @@ def test_truth_inside_90_percent_intervals(problem, log_prob, tmp_path):
     ``beta`` by 3.5e6 around 0.4986e9 (stderr ~3.2e6): unbiased, widths consistent. The
     data of this module use seeds (3, 4)."""
     run = sample_posterior(
-        problem, tmp_path / "chain.h5", n_walkers=WALKERS, max_steps=600, seed=0,
+        problem, tmp_path / "chain.h5", n_walkers=WALKERS, max_steps=800, seed=0,
         chunk=100, log_prob=log_prob,
     )  # fmt: skip
     samples, _, _ = posterior_samples(problem, run.path, run.tau)
