@@ -10,6 +10,14 @@ The public surface. Enable float64 at the start of your program::
     sol = jl.simulate(jl.Plant(), jl.make_effects("hose_compliance"), jl.Inputs.from_log(log))
 """
 
+from ._closed_loop import (
+    ClosedLoopSolution,
+    Reference,
+    SampledFilterWarning,
+    simulate_closed_loop,
+    thesis_reference,
+)
+from ._control import PID, AbstractController, ScheduledPID, load_gains, save_gains
 from ._diagnose import (
     Diagnosis,
     EffectScreen,
@@ -42,7 +50,26 @@ from ._params import (
     save_params_json,
     to_unconstrained,
 )
+from ._performance import CostWeights, Figures
+from ._performance import figures as closed_loop_figures
 from ._plant import Plant
+from ._posterior import (
+    AIR_THRESHOLD,
+    BETA_OIL,
+    DEFAULT_PRIORS,
+    LogNormal,
+    PosteriorProblem,
+    SamplerRun,
+    Uniform,
+    air_content,
+    make_log_prob,
+    mean_working_pressure,
+    posterior_draws,
+    posterior_samples,
+    prepare_posterior,
+    run_posterior,
+    sample_posterior,
+)
 from ._simulate import (
     Inputs,
     SimulationError,
@@ -52,11 +79,53 @@ from ._simulate import (
     plant_signals_and_derivative,
     simulate,
 )
+from ._tuning import (
+    TuneResult,
+    closed_loop_eigenvalues,
+    parameter_draws,
+    robustness_report,
+    stability_table,
+    tune_gains,
+)
 from ._workflows import run_diagnose, run_fit
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "AIR_THRESHOLD",
+    "BETA_OIL",
+    "DEFAULT_PRIORS",
+    "LogNormal",
+    "PosteriorProblem",
+    "SamplerRun",
+    "Uniform",
+    "air_content",
+    "make_log_prob",
+    "mean_working_pressure",
+    "posterior_draws",
+    "posterior_samples",
+    "prepare_posterior",
+    "run_posterior",
+    "sample_posterior",
+    "PID",
+    "AbstractController",
+    "ClosedLoopSolution",
+    "CostWeights",
+    "Figures",
+    "Reference",
+    "SampledFilterWarning",
+    "ScheduledPID",
+    "TuneResult",
+    "closed_loop_eigenvalues",
+    "closed_loop_figures",
+    "load_gains",
+    "parameter_draws",
+    "robustness_report",
+    "save_gains",
+    "simulate_closed_loop",
+    "stability_table",
+    "thesis_reference",
+    "tune_gains",
     "EFFECTS",
     "PARAMETER_SETS",
     "Diagnosis",

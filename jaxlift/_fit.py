@@ -212,13 +212,28 @@ class _Problem:
 
     def residuals_at(self, theta) -> np.ndarray:
         """Residuals at ``theta`` (one compiled function for every problem of this
-        structure, across calls of :func:`fit`)."""
-        return np.asarray(_residuals_jit(jnp.asarray(theta), self.args, self.spec))
+        structure, across calls of :func:`fit`); NaN where a simulation failed."""
+        r = _residuals_jit(jnp.asarray(theta), self.args, self.spec)
+        return self._mark_failures(np.asarray(r))
 
     def jacobian_at(self, theta) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals and forward-mode Jacobian (all columns of ``theta``) at ``theta``."""
+        """Residuals and forward-mode Jacobian (all columns of ``theta``) at ``theta``;
+        residuals NaN where a simulation failed."""
         r, J = _jacobian_jit(jnp.asarray(theta), self.args, self.spec)
-        return np.asarray(r), np.asarray(J)
+        return self._mark_failures(np.asarray(r)), np.asarray(J)
+
+    def _mark_failures(self, r: np.ndarray) -> np.ndarray:
+        """A failed simulation fills its log's block with exactly FAILED_RESIDUAL (which
+        keeps optimistix's iterations finite); for jaxlift's own loop, mark it NaN, so
+        that the step is rejected however large the misfit elsewhere."""
+        off = 0
+        for e in self.experiments:
+            block = r[off : off + e.n_residuals]
+            if np.all(block == FAILED_RESIDUAL):
+                r = r.copy()
+                r[off : off + e.n_residuals] = np.nan
+            off += e.n_residuals
+        return r
 
     @property
     def args(self):
@@ -267,7 +282,10 @@ def _start_box(info: ParamInfo, value: float) -> tuple[float, float]:
         lo, hi = value / f, value * f
     else:
         lo, hi = value * f, value / f
-    eps = 1e-9 * max(abs(info.upper - info.lower), 1.0) if math.isfinite(info.upper) else 0.0
+    # keep strictly inside the bounds, by a margin relative to the parameter's range
+    # (an absolute margin would empty the box of a parameter whose range is tiny, e.g.
+    # a compliance in m^3/Pa)
+    eps = 1e-9 * abs(info.upper - info.lower) if math.isfinite(info.upper) else 0.0
     lo = max(lo, info.lower + eps)
     hi = min(hi, info.upper - eps)
     return lo, hi
@@ -590,7 +608,6 @@ def _lm_starts(problem, starts, active, max_steps, gtol, progress, desc):
     compiled residuals and Jacobian are shared by all starts and stages)."""
     runs = []
     bar = tqdm(starts, desc=desc, unit="start", disable=progress is None, leave=False)
-    max_chi2 = 0.25 * FAILED_RESIDUAL**2 * sum(e.n_residuals for e in problem.experiments)
     for th in bar:
         run = levenberg_marquardt(
             problem.residuals_at,
@@ -599,7 +616,6 @@ def _lm_starts(problem, starts, active, max_steps, gtol, progress, desc):
             active,
             max_iter=max_steps,
             gtol=gtol,
-            max_chi2=max_chi2,
         )
         runs.append(run)
         bar.set_postfix(best_chi2=f"{min(r.chi2 for r in runs):.4g}")

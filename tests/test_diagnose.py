@@ -28,16 +28,20 @@ SECTIONS = [
 ]  # fmt: skip
 
 
-#: Each effect hidden at a size well away from its nesting value (1.5-3x the typical
-#: size of its ParamInfo.scale), with its other parameters away from nominal too.
+#: Each effect hidden at a size where it matters physically and is visible in the
+#: logs, with its other parameters away from nominal too: motor droop 1e-7 rad/(s Pa)
+#: (~3 % of the motor speed at the 1400 kg working pressure; 5e-7 changed the speed by
+#: a third and the baseline fit could not follow at all), 10 % entrained air at
+#: atmospheric pressure (2 % at 0.2 MPa is invisible at 5-10 MPa), a mast mode near
+#: 2 Hz (ks_inv 5e-6 m/N at 1400 kg).
 HIDDEN = {
     "stick_slip": {"dFs": 150.0, "v_s": 0.008},
     "motor_inertia": {"tau_m": 0.15},
-    "motor_droop": {"kappa": 5e-7},
+    "motor_droop": {"kappa": 1e-7},
     "leakage": {"C_L": 2e-13},
-    "entrained_air": {"alpha0": 0.02},
+    "entrained_air": {"alpha0": 0.1},
     "hose_compliance": {"C_h": 1.5e-12},
-    "mast_compliance": {"ks_inv": 2e-6, "c_s": 3000.0},
+    "mast_compliance": {"ks_inv": 5e-6, "c_s": 2000.0},
     "input_delay": {"tau_d": 0.08},
 }
 
@@ -117,7 +121,7 @@ def test_hidden_table_covers_every_effect():
         infos = jl.EFFECTS[name].param_infos()
         assert set(hidden) <= set(infos)
         sw = switch_parameter(name)
-        assert hidden[sw] >= 1.5 * infos[sw].scale  # well away from "switched off"
+        assert hidden[sw] >= 0.3 * infos[sw].scale  # well away from "switched off"
 
 
 @pytest.mark.extended
@@ -130,7 +134,8 @@ def test_verdict_names_each_hidden_effect(effect):
     summary = [(s.effect, round(s.z, 1), s.delta_bic) for s in d.ranking]
     assert d.verdict == effect, summary
     top = d.ranking[0]
-    assert top.heldout_chi2_after <= 0.5 * top.heldout_chi2_before, summary
+    # the held-out model error -- chi2/N above the sensor-noise floor of 1 -- halves
+    assert top.heldout_chi2_after - 1 <= 0.5 * (top.heldout_chi2_before - 1), summary
 
 
 @pytest.mark.extended

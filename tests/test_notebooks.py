@@ -30,3 +30,17 @@ def test_01_fit_and_compare(tmp_path, monkeypatch):
         o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
     )
     assert "chi2/N after the fit" in text
+
+
+@pytest.mark.extended
+def test_02_find_missing_physics(tmp_path, monkeypatch):
+    """The whole iterative diagnosis of the shipped logs (~15 min on 2 cores: not in CI;
+    run with ``-m extended``)."""
+    nb, out = _run_notebook(
+        ROOT / "calibration" / "02_find_missing_physics.py", tmp_path, monkeypatch
+    )
+    assert (out / "diagnosis.json").exists() and (out / "report.html").exists()
+    text = "".join(
+        o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
+    )
+    assert "verdict:" in text
