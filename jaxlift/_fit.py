@@ -111,6 +111,12 @@ class Experiment(eqx.Module):
     def n_residuals(self) -> int:
         return len(self.signals) * int(self.inputs.ts.shape[0])
 
+    def scaled_residuals(self, sol) -> Float[Array, "3 N"]:
+        """``(model - measured) / sigma`` of height, speed and pressure (one row each;
+        only the rows in ``signals`` are measured)."""
+        model = jnp.stack([sol.height, sol.speed, sol.pressure])
+        return (model - self.y) / self.sigma[:, None]
+
 
 def make_experiments(
     logs: Sequence[Log], measurement: MeasurementModel | None = None
@@ -148,9 +154,8 @@ def make_experiments(
 
 
 def _solution_residuals(sol, exp: Experiment) -> Float[Array, " M"]:
-    model = jnp.stack([sol.height, sol.speed, sol.pressure])
     keep = np.asarray(exp.signals)
-    r = ((model - exp.y) / exp.sigma[:, None])[keep].reshape(-1)
+    r = exp.scaled_residuals(sol)[keep].reshape(-1)
     # Only a solver failure is a failure here: a trajectory that leaves [0, x_max] is
     # still a valid (if bad) fit candidate whose residuals carry a useful gradient.
     solved = sol.result == diffrax.RESULTS.successful
@@ -549,11 +554,14 @@ def fit(
             nsteps = run.n_iter
             final = run
         else:
+            plant_k, effs_k = with_params(plant0, effs, values)  # the current estimate
             sub = _Problem(
-                plant0, effs, tuple(experiments), tuple(names), tuple(infos_all[n] for n in names)
+                plant_k,
+                effs_k,
+                tuple(experiments),
+                tuple(names),
+                tuple(infos_all[n] for n in names),
             )
-            plant_k, effs_k = with_params(plant0, effs, values)
-            sub = dataclasses.replace(sub, plant=plant_k, effects=effs_k)
             starts = _starts(sub, values, n_starts, seed + k, x0_mm)
             thetas, codes, steps, chi2s = _lm_solve(
                 sub,

@@ -394,8 +394,7 @@ def prepare_posterior(
     chi2n = {}
     for i, exp in enumerate(experiments):
         sol = simulate(plant, effs_v, exp.inputs).check(f"simulating {exp.name}")
-        model = np.stack([sol.height, sol.speed, sol.pressure])
-        r = (model - np.asarray(exp.y)) / np.asarray(exp.sigma)[:, None]
+        r = np.asarray(exp.scaled_residuals(sol))
         chi2n[exp.name] = {("height", "speed", "pressure")[k]: float(np.mean(r[k] ** 2))
                            for k in exp.signals}  # fmt: skip
         if likelihood == "ar1":
@@ -455,8 +454,7 @@ def _start_covariance(problem: PosteriorProblem) -> np.ndarray:
         out = []
         for i, exp in enumerate(experiments):
             sol = simulate(plant, effs, exp.inputs, adjoint=diffrax.ForwardMode())
-            model = jnp.stack([sol.height, sol.speed, sol.pressure])
-            r = (model - exp.y) / exp.sigma[:, None]
+            r = exp.scaled_residuals(sol)
             for k in exp.signals:
                 rr, c = r[k], rho[i, k]
                 e = jnp.concatenate([rr[:1] * jnp.sqrt(1 - c**2), rr[1:] - c * rr[:-1]])
@@ -578,8 +576,7 @@ def _single_fn(names: tuple[str, ...], effects: tuple[str, ...], prior_key: tupl
         ok = inside
         for i, exp in enumerate(experiments):
             sol = simulate(plant, effs, exp.inputs, max_steps=max_steps)
-            model = jnp.stack([sol.height, sol.speed, sol.pressure])
-            r = (model - exp.y) / exp.sigma[:, None]
+            r = exp.scaled_residuals(sol)
             ok = ok & (sol.result == diffrax.RESULTS.successful) & sol.in_range
             for k in exp.signals:
                 ll = ll + _ar1_loglik(r[k], rho[i, k], scale[i, k] * fac[k])
