@@ -40,7 +40,6 @@ import jax
 jax.config.update("jax_enable_x64", True)  # jaxlift needs float64; set it at the start
 
 import jaxlift as jl  # noqa: E402
-from jaxlift._workflows import run_diagnose  # noqa: E402
 
 SMALL = os.environ.get("JAXLIFT_NOTEBOOK_BUDGET") == "small"
 ROOT = pathlib.Path(os.environ.get("JAXLIFT_ROOT", pathlib.Path.cwd().parent))
@@ -74,7 +73,7 @@ held_out = [load("validation_1000kg.csv")]
 # Then the winner is added and the whole thing runs again.
 
 # %%
-steps = run_diagnose(fit_logs, held_out, out_dir=OUT, n_starts=1 if SMALL else 2, progress=print)
+steps = jl.run_diagnose(fit_logs, held_out, out_dir=OUT, n_starts=1 if SMALL else 2, progress=print)
 
 # %% [markdown]
 # ## The verdicts, step by step

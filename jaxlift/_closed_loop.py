@@ -57,7 +57,7 @@ from ._simulate import (
     plant_signals_and_derivative,
     x64_check,
 )
-from ._stepping import JumpStepSizeController
+from ._stepping import JumpStepSizeController, StabilityLimitedController
 
 __all__ = [
     "Reference",
@@ -358,8 +358,15 @@ def _solve_continuous(plant, effects, ctrl, ref, seed, noise_on, rtol, atol_base
     if noise_on:
         jumps = jnp.concatenate([jumps, _noise_ts(ref.n_out)[1:]])
     norm = lambda err: _error_norm(err[:n_core])  # the integrated outputs do not steer
+    # inside the solver's stability region too, as in jl.simulate (see _stepping.py):
+    # the forks held at rest have no error to control, their sensitivities do
     controller = JumpStepSizeController(
-        diffrax.PIDController(rtol=rtol, atol=atol, dtmax=DTMAX, norm=norm), jumps
+        StabilityLimitedController(
+            diffrax.PIDController(rtol=rtol, atol=atol, dtmax=DTMAX, norm=norm),
+            _cl_vector_field,
+            atol,
+        ),
+        jumps,
     )
     ts = ref.ts
     sol = diffrax.diffeqsolve(

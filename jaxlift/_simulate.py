@@ -324,10 +324,16 @@ def _solve(plant, effects, inputs, solver, rtol, atol_base, max_steps, adjoint):
     # steps end just before and restart just after each input jump, as with
     # diffrax.ClipStepSizeController(..., jump_ts=...), at a cost per step independent
     # of the number of jumps (see _stepping.py)
-    from ._stepping import JumpStepSizeController
+    from ._stepping import JumpStepSizeController, StabilityLimitedController
 
+    # steps also kept inside Tsit5's stability region: at rest the solution has no
+    # error to control, but its forward-mode sensitivities do (see _stepping.py)
     controller = JumpStepSizeController(
-        diffrax.PIDController(rtol=rtol, atol=atol, dtmax=DTMAX, norm=_error_norm),
+        StabilityLimitedController(
+            diffrax.PIDController(rtol=rtol, atol=atol, dtmax=DTMAX, norm=_error_norm),
+            _vector_field,
+            atol,
+        ),
         inputs.jump_ts + delay,
     )
     sol = diffrax.diffeqsolve(

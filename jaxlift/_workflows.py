@@ -16,7 +16,7 @@ import equinox as eqx
 import numpy as np
 
 from . import _analysis as an
-from ._fit import FitResult, fit
+from ._fit import FitResult, estimate_x0_offsets, fit
 from ._log import Log
 from ._model import all_param_infos, with_params
 from ._plant import Plant
@@ -140,9 +140,13 @@ def run_fit(
         "logs": {},
     }
     before_all = simulate_logs(result.initial, result.effects, [*fit_logs, *validate_logs])
-    after_all = simulate_logs(
-        result.params, result.effects, [*fit_logs, *validate_logs], result.x0_offsets
-    )
+    # held-out logs: their initial-height offsets estimated under the fitted model
+    # (a nuisance, as for the fitted logs; see estimate_x0_offsets)
+    offsets = {
+        **estimate_x0_offsets(result.params, result.effects, validate_logs),
+        **result.x0_offsets,
+    }
+    after_all = simulate_logs(result.params, result.effects, [*fit_logs, *validate_logs], offsets)
     for i, log in enumerate([*fit_logs, *validate_logs]):
         role = "fitted" if i < len(fit_logs) else "held_out"
         metrics["logs"][log.name] = {
@@ -440,7 +444,15 @@ def run_diagnose(
     if steps[-1].winner_fit is not None:
         wf = steps[-1].winner_fit
         models.append((wf.effects, wf.params))
-    sims = {tuple(e): simulate_logs(p, e, all_logs) for e, p in models}
+    # each model's own initial-height offsets: the fit's for the fitted logs, estimated
+    # under the model for the held-out ones (see estimate_x0_offsets)
+    x0s = [d.base_fit.x0_offsets for d in steps]
+    if steps[-1].winner_fit is not None:
+        x0s.append(steps[-1].winner_fit.x0_offsets)
+    sims = {
+        tuple(e): simulate_logs(p, e, all_logs, {**estimate_x0_offsets(p, e, validate_logs), **x0})
+        for (e, p), x0 in zip(models, x0s)
+    }
     labels = ["baseline" + "".join(f" + {x}" for x in e) for e, _ in models]
     error_rows = []
     for (e, _p), label in zip(models, labels):
@@ -452,9 +464,11 @@ def run_diagnose(
     _plot_error_steps(error_rows, figs / "error_by_step.png")
     first = steps[0]
     verdicts = [d.verdict for d in steps if d.verdict != "none"]
+    dropped = [name for d in steps for name in d.dropped]
     data = {
         "verdict": first.verdict,
         "verdicts": verdicts,
+        "dropped": dropped,
         "ranking": first.as_dict()["ranking"],
         "steps": [d.as_dict() for d in steps],
         "errors_by_step": error_rows,
@@ -463,7 +477,7 @@ def run_diagnose(
         "signatures": {},
     }
     rep = Report("jaxlift diagnosis: which physical effect is missing?")
-    missing = ", ".join(f"**{v}**" for v in verdicts) or "**none**"
+    missing = ", ".join(f"**{v}**" for v in verdicts if v not in dropped) or "**none**"
     rep.text(
         f"Fitted logs: {', '.join(f'`{lg.name}`' for lg in logs)}; held out: "
         f"{', '.join(f'`{lg.name}`' for lg in validate_logs) or 'none'}. "
@@ -477,6 +491,12 @@ def run_diagnose(
             f"Step {k + 1}: model = baseline{''.join(' + ' + x for x in d.base_effects)}; "
             f"verdict: {d.verdict}"
         )
+        for name, dbic in d.dropped.items():
+            rep.text(
+                f"Backward check after adding {d.verdict}: without **{name}** the BIC "
+                f"changes by only {dbic:+.1f} (< 10): {d.verdict} explains what {name} "
+                f"did, so {name} is dropped again."
+            )
         rep.text(
             f"chi2/N of the fitted model {d.base_chi2 / d.n_residuals:.3g}; residual "
             f"autocorrelation inflates variances by {d.inflation:.1f} (so the tests count "
@@ -496,8 +516,8 @@ def run_diagnose(
                 for s in d.ranking
             ],
             caption="Ranking: confirmed candidates by BIC change (negative = better), then "
-            "the others by score. Verdict = largest BIC drop beyond 10 with no worse "
-            "held-out error.",
+            "the others by score. Verdict = largest BIC drop beyond 10 whose held-out "
+            "chi2 also falls by more than 10 (effective samples).",
         )
     # the signature, on the user's own data, before and after adding the effects
     rep.heading("The physical signature on your data")

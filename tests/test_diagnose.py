@@ -148,3 +148,21 @@ def test_two_hidden_effects_found_in_two_iterations():
     verdicts = [d.verdict for d in steps]
     assert len(steps) == 3 and verdicts[2] == "none", verdicts
     assert set(verdicts[:2]) == set(effects), verdicts
+
+
+@pytest.mark.extended
+def test_backward_check_drops_the_effect_that_only_mimicked_another():
+    """The failure forward selection alone had (stop 8): with leakage and motor
+    inertia hidden, a pure input delay (the signature closest to a motor lag) was
+    added first and kept. With all three in the model, removing the delay costs
+    (almost) nothing and removing leakage costs a lot: the delay is the one dropped."""
+    from jaxlift._diagnose import _backward_check
+
+    hidden = {**HIDDEN["leakage"], **HIDDEN["motor_inertia"]}
+    logs = _logs(hidden, effects=("leakage", "motor_inertia"))
+    effects = ["leakage", "input_delay", "motor_inertia"]
+    init = {**TRUTH, **hidden, "tau_d": 0.02}
+    model = fit(logs, effects=effects, init=init, free="all,effects", staged=False, n_starts=1)
+    name, dbic, reduced = _backward_check(model, logs, ["leakage", "input_delay"], "all", 0)
+    assert name == "input_delay" and dbic < 10, (name, dbic)
+    assert list(reduced.effects) == ["leakage", "motor_inertia"]

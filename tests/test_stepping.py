@@ -17,7 +17,7 @@ import pytest
 
 import jaxlift as jl
 from jaxlift import _simulate
-from jaxlift._stepping import JumpStepSizeController
+from jaxlift._stepping import JumpStepSizeController, StabilityLimitedController
 
 FS = 100.0
 TS = np.arange(0.0, 6.0 + 0.5 / FS, 1.0 / FS)
@@ -32,9 +32,11 @@ RTOL = 1e-6
 def _pid(effects=(), rtol=RTOL):
     scales = [jnp.asarray(e.state_scales, dtype=jnp.float64) for e in effects]
     atol = jnp.concatenate([jnp.asarray(_simulate.DEFAULT_ATOL), *scales]) * (rtol / RTOL)
-    return diffrax.PIDController(
+    pid = diffrax.PIDController(
         rtol=rtol, atol=atol, dtmax=_simulate.DTMAX, norm=_simulate._error_norm
     )
+    # as in jl.simulate: the stability limit inside, the jump handling outside
+    return StabilityLimitedController(pid, _simulate._vector_field, atol)
 
 
 def _controller(kind, jump_ts, effects=(), rtol=RTOL):
@@ -132,7 +134,8 @@ def test_controller_state_does_not_carry_the_jump_times():
         term, 0.0, TS[-1], y0, None, (jl.Plant(), (), INPUTS), diffrax.Tsit5().func, 5
     )
     sizes = [np.size(x) for x in jax.tree_util.tree_leaves(state)]
-    assert max(sizes) == 1
+    # scalars, and the stability limit's power-iteration vector (one entry per state)
+    assert max(sizes) == y0.shape[0] < INPUTS.jump_ts.shape[0]
 
 
 def test_backwards_in_time_matches_clip():
@@ -251,3 +254,59 @@ def test_rejects_bad_arguments():
         JumpStepSizeController(_pid(), jnp.arange(3))
     with pytest.raises(ValueError, match="1-D"):
         JumpStepSizeController(_pid(), jnp.zeros((2, 2)))
+
+
+# ------------------------------------------------ StabilityLimitedController
+LAM = 200.0  # 1/s: stiff against DTMAX (|lambda dt| = 10 > Tsit5's ~3.5)
+
+
+def _relax(theta, limited: bool):
+    """y' = LAM (theta - y), y(0) = 1, at theta = 1: the solution sits at its
+    equilibrium (zero error estimates, steps grow to DTMAX), but dy/dtheta =
+    1 - exp(-LAM t) does not."""
+
+    def vf(t, y, args):
+        return LAM * (args - y)
+
+    pid = diffrax.PIDController(rtol=1e-6, atol=1e-8, dtmax=_simulate.DTMAX)
+    controller = StabilityLimitedController(pid, vf, jnp.ones(1)) if limited else pid
+    ts = jnp.linspace(0.0, 2.0, 21)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(vf), diffrax.Tsit5(), 0.0, 2.0, None, jnp.ones(1), args=theta,
+        saveat=diffrax.SaveAt(ts=ts), stepsize_controller=controller, max_steps=4096,
+        adjoint=diffrax.ForwardMode(),
+    )  # fmt: skip
+    return sol.ys[:, 0], ts
+
+
+def test_stability_limit_keeps_forward_sensitivities_stable_at_rest():
+    ts = np.linspace(0.0, 2.0, 21)
+    exact = 1.0 - np.exp(-LAM * ts)
+    d_plain = np.asarray(jax.jacfwd(lambda th: _relax(th, False)[0])(jnp.asarray(1.0)))
+    d_limited = np.asarray(jax.jacfwd(lambda th: _relax(th, True)[0])(jnp.asarray(1.0)))
+    # without the limit the sensitivity explodes (the failure this controller fixes)
+    assert not np.all(np.abs(d_plain - exact) < 1e-3), d_plain
+    np.testing.assert_allclose(d_limited, exact, rtol=0, atol=1e-5)
+    # the solution itself is the same (at rest) either way
+    np.testing.assert_allclose(_relax(1.0, True)[0], 1.0, rtol=0, atol=1e-12)
+
+
+def test_mast_compliance_jacobian_at_rest_matches_finite_differences():
+    """The case that failed in the diagnosis: a light carriage (the load on the mast
+    spring) held at rest against the steep Coulomb friction, d(height)/d(log ks_inv)."""
+    inputs = jl.Inputs.from_arrays(TS, PWM, np.full(TS.shape, 600.0), 0.05)
+
+    def heights(log_ks):
+        effs = jl.make_effects("mast_compliance", {"ks_inv": jnp.exp(log_ks), "c_s": 1000.0})
+        sol = jl.simulate(jl.Plant(), effs, inputs, rtol=1e-8, adjoint=diffrax.ForwardMode())
+        return sol.height
+
+    x = jnp.asarray(np.log(5e-6))
+    d = np.asarray(jax.jacfwd(heights)(x))
+    h = 3e-3
+    fd = (np.asarray(heights(x + h)) - np.asarray(heights(x - h))) / (2 * h)
+    assert np.max(np.abs(fd)) > 1e-4  # m: the compliance shows in the height
+    # forward mode differentiates the solution with the step sizes held (diffrax stops
+    # their gradient), finite differences see the steps move: measured 0.12-0.5 % of
+    # the largest entry for h = 1e-3..1e-2 (without the stability limit: 1e100)
+    np.testing.assert_allclose(d, fd, rtol=0, atol=5e-3 * np.max(np.abs(fd)))
