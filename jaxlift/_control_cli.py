@@ -17,9 +17,14 @@ import sys
 
 
 def _model(args, logs=None, out=None):
-    """(plant, effects, params path): from --params, else a least-squares fit of the logs."""
+    """(plant, effects, params path): from --params, else the calibrated model of
+    --posterior DIR (its ``params.json``), else a least-squares fit of the logs."""
     import jaxlift as jl
 
+    posterior = getattr(args, "posterior", None)
+    if not args.params and posterior and (pathlib.Path(posterior) / "params.json").exists():
+        args.params = str(pathlib.Path(posterior) / "params.json")
+        print(f"no --params: the posterior's calibrated model {args.params}", flush=True)
     if args.params:
         plant, effects = jl.load_model(args.params, args.effects)
         return plant, effects, args.params
@@ -58,6 +63,7 @@ def cmd_tune(args) -> int:
         plot_response,
         robustness_report,
         tune_gains,
+        tune_multistart,
         tuning_cost,
     )
 
@@ -80,7 +86,7 @@ def cmd_tune(args) -> int:
     if args.scheduled:
         start = ScheduledPID.from_pid(start)
 
-    print(f"nominal tuning: {args.steps} L-BFGS evaluations ...", flush=True)
+    print(f"nominal tuning: at most {args.steps} LM evaluations ...", flush=True)
     nominal = tune_gains(
         start, plant, effects, refs, steps=args.steps, progress=True, rtol=args.rtol, **sim
     )
@@ -99,18 +105,28 @@ def cmd_tune(args) -> int:
     except Exception as err:  # noqa: BLE001 -- no draws: nominal only, and say so
         print(f"no parameter draws ({err}): robust tuning and report skipped", flush=True)
     robust = None
+    notes = []
     if draws is not None:
         print(f"parameter draws: {draws.source}", flush=True)
+        model_effects = sorted(e.name for e in effects)
+        if sorted(draws.effects) != model_effects:
+            notes.append(
+                f"the draws are of a model with effects {sorted(draws.effects) or 'none'}, "
+                f"the tuned model has {model_effects or 'none'}: only the parameters the "
+                "tuned model has are drawn, the others are ignored"
+            )
+            print(f"warning: {notes[-1]}", flush=True)
         tune_draws, eval_draws = draws.split(args.robust_draws)
         if args.robust_draws > 0:
             plants, effs = batch_models(plant, effects, tune_draws.draws)
             print(
-                f"robust tuning over {args.robust_draws} draws (mean + CVaR20): "
-                f"{args.steps} L-BFGS evaluations ...",
+                f"robust tuning over {args.robust_draws} draws (mean + CVaR20), from the "
+                f"nominal-tuned and from the starting gains: at most {args.steps} LM "
+                "evaluations each ...",
                 flush=True,
             )
-            robust = tune_gains(
-                nominal.controller,
+            robust = tune_multistart(
+                [nominal.controller, start],
                 plants,
                 effs,
                 refs,
@@ -123,7 +139,7 @@ def cmd_tune(args) -> int:
             )
             print(
                 f"  objective {robust.initial_cost:.4g} -> {robust.best_cost:.4g} "
-                f"({robust.wall_s:.0f} s)",
+                f"({robust.wall_s:.0f} s; {robust.message})",
                 flush=True,
             )
             gain_sets["robust-tuned"] = robust.controller
@@ -148,9 +164,18 @@ def cmd_tune(args) -> int:
         f"reference: the thesis-like sequence (time scale {args.time_scale:g}). "
         f"Controller: {'scheduled' if args.scheduled else 'plain'} PID, "
         f"{form}; noise: {noise}. "
-        f"L-BFGS on the log gains (forward-mode gradients through the closed loop), "
-        f"{args.steps} evaluations. Written gains: **{chosen_name}** "
-        "(`gains.json`)."
+        "Levenberg-Marquardt on the log gains (the cost as a sum of squares, its "
+        "forward-mode Jacobian through the closed loop), at most "
+        f"{args.steps} evaluations per tuning"
+        + (
+            "; robust tuning from the nominal-tuned and from the starting gains, the better "
+            f"kept ({robust.message})"
+            if robust is not None
+            else ""
+        )
+        + f". Parameter draws: {draws.source if draws is not None else 'none'}. "
+        + "".join(f"Note: {n}. " for n in notes)
+        + f"Written gains: **{chosen_name}** (`gains.json`)."
     )
     rows = []
     for name, ctrl in gain_sets.items():
@@ -263,7 +288,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     _common(p)
     p.add_argument("--posterior", help="posterior directory (jaxlift posterior)")
     p.add_argument("--scheduled", action="store_true", help="tune the scheduled PID (18 + N)")
-    p.add_argument("--steps", type=int, default=30, help="evaluations per tuning (L-BFGS)")
+    p.add_argument("--steps", type=int, default=30, help="evaluations per tuning (LM; at most)")
     p.add_argument("--robust-draws", type=int, default=16, help="draws for robust tuning")
     p.add_argument("--eval-draws", type=int, default=100, help="held-out draws for the report")
     p.add_argument("--noise-seed", type=int, default=None, help="tune with sensor noise")

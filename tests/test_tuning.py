@@ -1,5 +1,6 @@
 """Gain tuning: tuned beats the thesis gains, robust beats nominal on held-out draws,
-parameter draws from the least-squares covariance, CVaR, CLI.
+the cost as a sum of squares (what LM tunes), parameter draws from the least-squares
+covariance and from a posterior directory, CVaR, CLI.
 
 Short references (13 s, through the first stage shift) and small budgets; the
 robust-vs-nominal comparison is marked slow.
@@ -17,18 +18,23 @@ import pytest
 
 import jaxlift as jl
 from jaxlift._closed_loop import Reference, simulate_closed_loop
-from jaxlift._control import PID, THESIS_PID, load_gains
+from jaxlift._control import PID, THESIS_PID, ScheduledPID, load_gains
+from jaxlift._performance import noise_amplification
 from jaxlift._tuning import (
     FAILED_COST,
     GainSpace,
     batch_models,
     closed_loop_costs,
+    draw_weights,
     evaluate_draws,
     parameter_draws,
     robust_objective,
     stack_references,
+    stage_noise_amplification,
     tune_gains,
+    tune_multistart,
     tuning_cost,
+    tuning_residuals,
 )
 
 CALIBRATED = {"beta": 4.0e8, "cf_con": 1.0, "cf_in": 13.5, "cf_out": 770.0, "d": 560.0}
@@ -48,6 +54,29 @@ def fit_dir(tmp_path_factory):
     values = {k: float(v) for k, v in jl.get_params(PLANT).items()}
     jl.save_params_json(d / "params.json", values, comment="test fit")
     (d / "metrics.json").write_text(json.dumps({"effects": [], "stderr": STDERR}))
+    return d
+
+
+@pytest.fixture(scope="module")
+def posterior_dir(tmp_path_factory):
+    """A minimal `jaxlift posterior` output: settings + posterior.nc (2 chains x 20
+    draws of beta and d, seeded), the other parameters at the calibrated values."""
+    import xarray as xr
+
+    d = tmp_path_factory.mktemp("posterior")
+    values = {k: float(v) for k, v in jl.get_params(PLANT).items()}
+    problem = {"names": ["beta", "d", "noise_speed"], "effects": [], "values": values}
+    (d / "posterior_settings.json").write_text(json.dumps({"problem": problem}))
+    rng = np.random.default_rng(3)
+    post = xr.Dataset(
+        {
+            "beta": (("chain", "draw"), rng.normal(4.0e8, 0.2e8, (2, 20))),
+            "d": (("chain", "draw"), rng.normal(560.0, 30.0, (2, 20))),
+            "noise_speed": (("chain", "draw"), rng.normal(1e-3, 1e-4, (2, 20))),
+        }
+    )
+    xr.DataTree.from_dict({"posterior": post}).to_netcdf(d / "posterior.nc", engine="h5netcdf")
+    jl.save_params_json(d / "params.json", values, comment="test posterior")
     return d
 
 
@@ -81,6 +110,29 @@ def test_gain_space_roundtrip_and_floors():
         GainSpace.for_controller(START, ["P", "Kp"])
 
 
+def test_scheduled_local_coordinates_give_the_same_loop():
+    """A run at one load sees a scheduled PID only through its 11 gains at that load
+    (what the LM Jacobian is taken in): the flat controller built from them has the
+    same gains at that load, at every height; the chain rule maps 11 -> 20."""
+    space = GainSpace.for_controller(ScheduledPID.from_pid(START))
+    rng = np.random.default_rng(2)
+    theta = jnp.asarray(space.to_theta(space.template) + 0.3 * rng.normal(size=20))
+    full = space.from_theta(theta)
+    for m in (500.0, 900.0, 1500.0):
+        vals = space.local_values(theta, m)
+        local = space.local_controller(vals)
+        for x in (0.4, 1.5, 2.2, 3.0, 4.0):
+            a = np.asarray(full.gains(PLANT, jnp.asarray(x), m))
+            b = np.asarray(local.gains(PLANT, jnp.asarray(x), 2.0 * m))  # flat in the load
+            np.testing.assert_allclose(b, a, rtol=1e-12)
+        assert float(local.N) == pytest.approx(float(full.N))
+        J = np.asarray(jax.jacfwd(space.local_values)(theta, m))
+        assert J.shape == (11, 20) and np.all(J[:, space.names.index("K_aw")][:10] == 0)
+    # at 500 kg only the 500 kg coordinates matter
+    J = np.asarray(jax.jacfwd(space.local_values)(theta, 500.0))
+    assert np.all(J[:9, [i for i, n in enumerate(space.names) if n.endswith("@1500")]] == 0)
+
+
 def test_parameter_draws_from_least_squares(fit_dir):
     a = parameter_draws(50, 7, fit_dir=fit_dir)
     b = parameter_draws(50, 7, fit_dir=fit_dir)
@@ -97,10 +149,57 @@ def test_parameter_draws_from_least_squares(fit_dir):
         parameter_draws(5, 0)
 
 
+def test_parameter_draws_from_a_posterior_directory(posterior_dir, fit_dir):
+    a = parameter_draws(30, 5, posterior_dir=posterior_dir, fit_dir=fit_dir)
+    assert a.source.startswith("posterior samples") and a.effects == []
+    assert a.draws == parameter_draws(30, 5, posterior_dir=posterior_dir).draws
+    assert a.draws != parameter_draws(30, 6, posterior_dir=posterior_dir).draws
+    import xarray as xr
+
+    with xr.open_datatree(posterior_dir / "posterior.nc", engine="h5netcdf") as tree:
+        stored = set(np.asarray(tree["posterior"]["beta"]).ravel().tolist())
+    assert {d["beta"] for d in a.draws} <= stored  # the stored samples themselves
+    assert len({d["beta"] for d in a.draws}) == 30  # without replacement (40 stored)
+    assert {d["cf_out"] for d in a.draws} == {float(PLANT.cf_out)}  # not sampled: fixed
+    assert all("noise_speed" not in d for d in a.draws)  # likelihood noise: not a parameter
+    plants, _ = batch_models(PLANT, (), a.draws)
+    assert np.asarray(plants.beta).shape == (30,)
+
+
 def test_robust_objective_is_mean_plus_cvar():
     c = np.array([1.0, 2.0, 3.0, 4.0, 10.0])
     assert float(robust_objective(c, alpha=0.2)) == pytest.approx(4.0 + 10.0)
     assert float(robust_objective(c, alpha=0.4, tail_weight=0.5)) == pytest.approx(4.0 + 3.5)
+    # the weights LM tunes with give the same objective (worst set held at the point)
+    for alpha, tw in ((0.2, 1.0), (0.4, 0.5)):
+        w = draw_weights(jnp.asarray(c), True, alpha, tw)
+        assert float(jnp.sum(w * c)) == pytest.approx(float(robust_objective(c, alpha, tw)))
+    assert float(jnp.sum(draw_weights(jnp.asarray(c), False) * c)) == pytest.approx(4.0)
+
+
+def test_residuals_sum_to_the_tuning_cost():
+    """LM tunes ``sum(r**2)``: it must be the cost, for the plain and the scheduled PID
+    (whose noise amplification differs per stage)."""
+    sched = ScheduledPID.from_stage_gains(
+        jnp.asarray([[20.0, 300.0, 2.0], [30.0, 300.0, 2.0], [180.0, 400.0, 2.0]]),
+        jnp.asarray([[25.0, 300.0, 2.0], [30.0, 350.0, 2.0], [220.0, 400.0, 2.0]]),
+        100.0,
+        15.0,
+    )
+    for ctrl in (START, sched):
+        sol = simulate_closed_loop(PLANT, (), ctrl, REF).check()
+        r = tuning_residuals(ctrl, PLANT, sol)
+        cost = float(tuning_cost(ctrl, PLANT, sol))
+        assert float(jnp.sum(r**2)) == pytest.approx(cost, rel=1e-12)
+        assert cost > 1.0
+    # a plain PID amplifies the noise the same at every height: the cost is unchanged
+    mid = noise_amplification(START, PLANT, 0.5 * PLANT.x_max, 1000.0)
+    assert float(stage_noise_amplification(START, PLANT, 1000.0)) == pytest.approx(float(mid))
+    per_stage = [float(noise_amplification(sched, PLANT, x, 1000.0)) for x in (0.75, 2.25, 3.75)]
+    assert float(stage_noise_amplification(sched, PLANT, 1000.0)) == pytest.approx(
+        math.sqrt(np.mean(np.square(per_stage)))
+    )
+    assert max(per_stage) > 1.5 * min(per_stage)  # stage 3's gains pay for their noise
 
 
 @pytest.mark.slow
@@ -132,38 +231,61 @@ def test_failed_run_costs_finite_penalty_and_finite_gradient():
 
 @pytest.mark.slow
 def test_robust_tuning_has_better_worst_case_on_held_out_draws(fit_dir):
+    """Robust tuning (mean + CVaR over 6 draws, from the nominal-tuned and from the
+    starting gains, as `jaxlift tune` does) against nominal tuning (run to its own
+    stop), on 16 held-out draws; tuned at the tolerance of the evaluation (at rtol 1e-5
+    LM found nominal gains whose cost was 2.55 there and 2.90 at 1e-6).
+
+    A trade-off, not a better optimiser: the nominal-tuned gains stay better on the
+    nominal plant. Measured (this code, 2 cores): held-out worst case 13.58 -> 12.92,
+    mean 4.46 -> 4.31; over 208 held-out draws in 13 blocks of 16 the worst case was
+    lower in every block (ratios 0.90-1.00), the mean too, 71 % of the draws better:
+    a modest effect (~5 %), but a real one."""
     draws = parameter_draws(6 + 16, 11, fit_dir=fit_dir)
     tune_set, held_out = draws.split(6)
-    nominal = tune_gains(START, PLANT, (), [REF], steps=10)
+    nominal = tune_gains(START, PLANT, (), [REF], steps=25, rtol=1e-6)
+    assert nominal.message.startswith(("converged", "stalled")), nominal.message
     plants, effs = batch_models(PLANT, (), tune_set.draws)
-    # as `jaxlift tune` does: the robust tuning refines the nominal gains
-    robust = tune_gains(
-        nominal.controller, plants, effs, [REF], batched_plants=True, robust=True, steps=10,
-        alpha=0.34,
+    robust = tune_multistart(
+        [nominal.controller, START], plants, effs, [REF], batched_plants=True, robust=True,
+        steps=25, alpha=0.34, rtol=1e-6,
     )  # fmt: skip
-    hp, he = batch_models(PLANT, (), held_out.draws)
+    # tuning draws first, then the held-out ones (one batch: one compilation)
+    hp, he = batch_models(PLANT, (), tune_set.draws + held_out.draws)
     c_nom, ok_nom, _ = evaluate_draws(nominal.controller, hp, he, REF)
     c_rob, ok_rob, _ = evaluate_draws(robust.controller, hp, he, REF)
-    assert ok_rob.all()
-    assert c_rob.max() < c_nom.max(), (c_rob.max(), c_nom.max())
-    assert math.isfinite(c_rob.max())
+    assert ok_rob.all() and ok_nom.all()
+    # on the tuning draws the robust objective went down against the nominal gains'
+    assert robust.best_cost < 0.97 * float(robust_objective(jnp.asarray(c_nom[:6]), alpha=0.34))
+    c_nom, c_rob = c_nom[6:], c_rob[6:]
+    assert c_rob.max() < 0.97 * c_nom.max(), (c_rob.max(), c_nom.max())
+    assert c_rob.mean() < c_nom.mean(), (c_rob.mean(), c_nom.mean())
+    assert _cost(robust.controller) > _cost(nominal.controller)  # the price on the nominal plant
 
 
 @pytest.mark.slow
-def test_cli_tune_and_control_simulate(tmp_path, fit_dir):
+def test_cli_tune_and_control_simulate(tmp_path, fit_dir, posterior_dir):
+    """`jaxlift tune --posterior DIR` (no --params: the posterior's calibrated model),
+    robust tuning over two posterior draws, report over two more; then `control
+    simulate` with the written gains."""
     from jaxlift._cli import main
 
     out = tmp_path / "tune"
     rc = main(
-        ["tune", "data/lift_500kg.csv", "--params", str(fit_dir / "params.json"),
-         "--time-scale", "0.15", "--steps", "1", "--robust-draws", "0", "--eval-draws", "2",
+        ["tune", "data/lift_500kg.csv", "--posterior", str(posterior_dir),
+         "--time-scale", "0.15", "--steps", "1", "--robust-draws", "2", "--eval-draws", "2",
          "--no-report-noise", "--out", str(out)]
     )  # fmt: skip
     assert rc == 0
     ctrl = load_gains(out / "gains.json")
     assert ctrl.gain_values().keys() == {"P", "I", "D", "N", "K_aw"}
+    assert (out / "gains_robust.json").exists() and (out / "gains_nominal.json").exists()
     assert (out / "report.md").exists() and (out / "figures" / "response.png").exists()
-    assert "least-squares covariance" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert f"posterior samples from {posterior_dir}" in report
+    assert str(posterior_dir / "params.json") in report
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["robustness"]["n_draws"] == 2
     sim = tmp_path / "sim"
     rc = main(
         ["control", "simulate", "--gains", str(out / "gains.json"), "--params",
