@@ -86,6 +86,8 @@ from ._tuning import (
     robustness_report,
     stability_table,
     tune_gains,
+    tune_multistart,
+    tuning_residuals,
 )
 from ._workflows import run_diagnose, run_fit
 
@@ -126,6 +128,8 @@ __all__ = [
     "stability_table",
     "thesis_reference",
     "tune_gains",
+    "tune_multistart",
+    "tuning_residuals",
     "EFFECTS",
     "PARAMETER_SETS",
     "Diagnosis",
