@@ -40,6 +40,9 @@ import pathlib
 import jax
 
 jax.config.update("jax_enable_x64", True)  # jaxlift needs float64; set it at the start
+# one XLA CPU device per core: the sampler splits each batch of walkers across them
+# (as `jaxlift posterior` does); like float64, this must come before any JAX operation
+jax.config.update("jax_num_cpu_devices", os.cpu_count() or 1)
 
 import jaxlift as jl  # noqa: E402
 from jaxlift._posterior import DEFAULT_PRIORS, posterior_draws, run_posterior  # noqa: E402

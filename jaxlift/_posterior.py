@@ -80,6 +80,7 @@ __all__ = [
     "predictive",
     "run_posterior",
     "posterior_draws",
+    "MOVES",
 ]
 
 #: Bulk modulus of ideal (air-free) oil [Pa] (MODEL.md).
@@ -92,6 +93,23 @@ AIR_THRESHOLD = 1e-3
 NOISE_NAMES = ("noise_height", "noise_speed", "noise_pressure")
 #: Solver step limit inside the log-probability (a failed solve is -inf).
 SIM_MAX_STEPS = 50_000
+#: emcee proposals (``move=``), by name: ``"de-snooker"`` (the default) differential
+#: evolution (80 %) mixed with the DE snooker move (20 %), emcee's suggested mix;
+#: ``"de"`` differential evolution alone; ``"stretch"`` emcee's own default, the
+#: affine-invariant stretch move; ``"kde"`` a Gaussian KDE of the complementary half of
+#: the ensemble as proposal. All leave the posterior invariant; they differ in how many
+#: steps one independent sample takes (the integrated autocorrelation time tau).
+#: Measured on the shipped logs (5 parameters, 32 walkers, seed 0, max tau on the first
+#: 253 steps of each chain): stretch 28.5, de 16.1, de-snooker 16.3, kde 9.7; stretch
+#: reached 58 after 1946 steps, de-snooker about 18 (on a Gaussian with the posterior's
+#: covariance: stretch 51-57, de 17, de-snooker 19, kde 7). The KDE proposal is not the
+#: default: it is an independence-type proposal that strands a walker the KDE of the
+#: others does not cover (seen on the shipped logs from another start: one walker at
+#: acceptance 0.01 and tau still growing past 50), and it needs several walkers per
+#: dimension (10 dimensions, 32 walkers: acceptance 3 %). See
+#: ``benchmarks/results_posterior.txt``.
+MOVES = ("de-snooker", "de", "stretch", "kde")
+DEFAULT_MOVE = "de-snooker"
 
 
 # ------------------------------------------------------------------ priors
@@ -588,24 +606,60 @@ def _single_fn(names: tuple[str, ...], effects: tuple[str, ...], prior_key: tupl
 
 
 @functools.lru_cache(maxsize=32)
-def _batched_fn(names, effects, prior_key, max_steps, batch):
+def _batched_fn(names, effects, prior_key, max_steps, batch, devices=None):
+    """The jitted batch function ``core(thetas, args)``. With ``devices`` (a tuple of
+    several devices) the batch is split evenly across them with ``shard_map``, each
+    device running ``batch`` over its share (the batch size must be a multiple of the
+    number of devices: :func:`make_log_prob` pads)."""
     single = _single_fn(names, effects, prior_key, max_steps)
     if batch == "vmap":
-        return jax.jit(jax.vmap(single, in_axes=(0, None)))
-    if batch == "map":
-        return jax.jit(lambda th, a: jax.lax.map(lambda t: single(t, a), th))
-    if batch == "single":
+        inner = jax.vmap(single, in_axes=(0, None))
+    elif batch == "map":
+
+        def inner(th, a):
+            return jax.lax.map(lambda t: single(t, a), th)
+
+    elif batch == "single":
         one = jax.jit(single)
 
         def core(th, a):
             return jnp.stack([one(t, a) for t in th])
 
         return core
-    raise ValueError(f"batch must be 'vmap', 'map' or 'single', not {batch!r}")
+    else:
+        raise ValueError(f"batch must be 'vmap', 'map' or 'single', not {batch!r}")
+    if devices is None or len(devices) < 2:
+        return jax.jit(inner)
+    from jax.sharding import Mesh, PartitionSpec
+
+    mesh = Mesh(np.asarray(devices), ("walkers",))
+    return jax.jit(
+        jax.shard_map(
+            inner,
+            mesh=mesh,
+            in_specs=(PartitionSpec("walkers"), PartitionSpec()),
+            out_specs=PartitionSpec("walkers"),
+            check_vma=False,
+        )
+    )
+
+
+def _devices(devices: int | None) -> tuple | None:
+    """The devices a batch is split across: the first ``devices`` local devices of
+    the default backend (all of them for ``None``); ``None`` for one."""
+    avail = jax.local_devices()
+    n = len(avail) if devices is None else int(devices)
+    if n < 1 or n > len(avail):
+        raise ValueError(f"devices must be 1 ... {len(avail)} (local devices), not {devices}")
+    return tuple(avail[:n]) if n > 1 else None
 
 
 def make_log_prob(
-    problem: PosteriorProblem, *, batch: str = "map", max_steps: int = SIM_MAX_STEPS
+    problem: PosteriorProblem,
+    *,
+    batch: str = "map",
+    max_steps: int = SIM_MAX_STEPS,
+    devices: int | None = None,
 ) -> Callable[[Float[ArrayLike, "B P"]], Float[np.ndarray, " B"]]:
     """The log-posterior density (up to a constant) in unconstrained coordinates.
 
@@ -616,22 +670,36 @@ def make_log_prob(
             function); ``"single"``: a jitted function of one walker, called in a Python
             loop (for comparison only).
         max_steps: solver step limit of each simulation.
+        devices: split the batch across this many local devices (``"map"`` and
+            ``"vmap"``; ``shard_map``, one compiled call). ``None``: all local devices
+            of the default backend. On a CPU JAX has one device unless the program
+            asked for more before its first JAX operation, e.g.
+            ``jax.config.update("jax_num_cpu_devices", 2)`` (what ``jaxlift
+            posterior`` does, one per core): each device then runs its share of the
+            walkers on its own core. The values do not depend on the split.
 
     Returns:
         ``f(thetas)`` with ``thetas`` of shape ``(B, P)`` -> ``(B,)`` float64 numpy array
         (``-inf`` for failed solves / outside the prior support, never NaN). The jitted
-        core is ``f.jitted(thetas, f.args)``.
+        core is ``f.jitted(thetas, f.args)`` (its batch a multiple of ``f.n_devices``).
     """
+    devs = None if batch == "single" else _devices(devices)
+    nd = 1 if devs is None else len(devs)
     key = (problem.names, problem.effects, _prior_key(problem), int(max_steps))
-    core = _batched_fn(*key, batch)
+    core = _batched_fn(*key, batch, devs)
     args = _log_prob_args(problem)
 
     def f(thetas):
-        out = np.asarray(core(jnp.asarray(thetas, dtype=jnp.float64), args), dtype=np.float64)
+        th = np.atleast_2d(np.asarray(thetas, dtype=np.float64))
+        m = th.shape[0]
+        if m % nd:  # pad to a multiple of the number of devices
+            th = np.concatenate([th, np.repeat(th[-1:], nd - m % nd, axis=0)])
+        out = np.asarray(core(jnp.asarray(th), args), dtype=np.float64)[:m]
         return np.where(np.isnan(out), -np.inf, out)  # belt and braces: never NaN
 
     f.jitted = core
     f.args = args
+    f.n_devices = nd
     return f
 
 
@@ -673,6 +741,8 @@ class SamplerRun:
         acceptance: mean acceptance fraction.
         wall_s: wall time of this run [s]; n_evals: log-probability evaluations.
         tau_history: ``(iteration, max tau)`` at each check.
+        move: the emcee proposal (:data:`MOVES`); n_devices: devices the walkers were
+            split across.
     """
 
     path: str
@@ -686,6 +756,8 @@ class SamplerRun:
     tau_history: list[tuple[int, float]]
     tau_factor: float
     n_walkers: int
+    move: str = "stretch"
+    n_devices: int = 1
 
 
 def _initial_coords(problem: PosteriorProblem, n_walkers: int, seed: int, f) -> np.ndarray:
@@ -718,6 +790,8 @@ def sample_posterior(
     chunk: int = 50,
     tau_factor: float = 50.0,
     batch: str = "map",
+    move: str = DEFAULT_MOVE,
+    devices: int | None = None,
     log_prob: Callable | None = None,
     progress: bool | Callable[[int], None] = False,
 ) -> SamplerRun:
@@ -737,6 +811,9 @@ def sample_posterior(
         tau_factor: converged when steps > ``tau_factor`` x max tau and every tau
             changed by less than 5 % since the previous check.
         batch: how the log-probability goes over the walkers (:func:`make_log_prob`).
+        move: emcee proposal, one of :data:`MOVES` (stored with the chain; a resumed
+            chain must use the move it was started with).
+        devices: devices the walkers are split across (:func:`make_log_prob`).
         log_prob: a ready :func:`make_log_prob` function (saves a compile).
         progress: show a tqdm progress bar (``True``), or a callable called with the
             iteration after each step (may raise to stop the run).
@@ -750,11 +827,19 @@ def sample_posterior(
     ndim = problem.ndim
     if n_walkers < 2 * ndim or n_walkers % 2:
         raise ValueError(f"n_walkers must be even and at least {2 * ndim}, not {n_walkers}")
-    f = log_prob or make_log_prob(problem, batch=batch)
+    moves = _emcee_moves(move)
+    f = log_prob or make_log_prob(problem, batch=batch, devices=devices)
     lp_fn = _EmceeLogProb(f, n_walkers // 2)
     backend = emcee.backends.HDFBackend(os.fspath(chain_path), name="mcmc")
     start = backend.iteration if os.path.exists(chain_path) and backend.initialized else 0
     if start > 0:
+        with backend.open() as fh:  # chains from before the choice: the stretch move
+            stored_move = str(fh["mcmc"].attrs.get("jaxlift_move", "stretch"))
+        if stored_move != move:
+            raise ValueError(
+                f"{chain_path}: the stored chain was run with the {stored_move!r} move, "
+                f"this run asks for {move!r}; resume with the same move"
+            )
         if backend.shape != (n_walkers, ndim):
             raise ValueError(
                 f"{chain_path}: the stored chain has {backend.shape} (walkers, parameters), "
@@ -765,9 +850,13 @@ def sample_posterior(
             raise ValueError(f"{chain_path}: the chain has no stored random state")
     else:
         backend.reset(n_walkers, ndim)
+        with backend.open("a") as fh:
+            fh["mcmc"].attrs["jaxlift_move"] = move
         coords = _initial_coords(problem, n_walkers, seed, f)
         state = emcee.State(coords, random_state=np.random.RandomState(seed).get_state())
-    sampler = emcee.EnsembleSampler(n_walkers, ndim, lp_fn, vectorize=True, backend=backend)
+    sampler = emcee.EnsembleSampler(
+        n_walkers, ndim, lp_fn, vectorize=True, backend=backend, moves=moves
+    )
     it = start
     t0 = time.perf_counter()
     bar = tqdm(total=max_steps, initial=it, desc="MCMC", unit="step", disable=progress is not True)
@@ -806,11 +895,29 @@ def sample_posterior(
         tau_history=history,
         tau_factor=tau_factor,
         n_walkers=n_walkers,
+        move=move,
+        n_devices=getattr(f, "n_devices", 1),
     )
 
 
+def _emcee_moves(move: str):
+    """emcee's ``moves`` argument for a name in :data:`MOVES`."""
+    import emcee
+
+    if move == "stretch":
+        return emcee.moves.StretchMove()
+    if move == "de":
+        return emcee.moves.DEMove()
+    if move == "de-snooker":
+        return [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+    if move == "kde":
+        return emcee.moves.KDEMove()
+    raise ValueError(f"move must be one of {', '.join(MOVES)}, not {move!r}")
+
+
 def _check(backend, it, tau_factor, tau_prev):
-    tau = np.asarray(backend.get_autocorr_time(tol=0), dtype=float)
+    with np.errstate(invalid="ignore"):  # a walker that has not moved yet: tau NaN
+        tau = np.asarray(backend.get_autocorr_time(tol=0), dtype=float)
     stable = tau_prev is not None and bool(np.all(np.abs(tau - tau_prev) < 0.05 * tau))
     converged = bool(np.all(np.isfinite(tau)) and it > tau_factor * np.max(tau) and stable)
     return tau, converged, tau
@@ -1002,6 +1109,8 @@ def run_posterior(
     n_predictive: int = 64,
     beta_oil: float = BETA_OIL,
     batch: str = "map",
+    move: str = DEFAULT_MOVE,
+    devices: int | None = None,
     progress: Callable[[str], None] | None = None,
     progress_bar: bool = False,
 ) -> dict:
@@ -1014,7 +1123,9 @@ def run_posterior(
     ``posterior.json``, ``figures/*.png``, ``report.md`` and ``report.html``.
 
     If ``out_dir`` already has a chain, the run resumes it; the requested settings must
-    match the stored ones (else :class:`ValueError`). Returns the content of
+    match the stored ones (else :class:`ValueError`; ``move`` among them: a directory
+    from before the choice of move holds a stretch-move chain). ``move`` and
+    ``devices``: see :func:`sample_posterior`. Returns the content of
     ``posterior.json``."""
     from ._params import save_params_json
     from ._posterior_report import write_outputs
@@ -1024,6 +1135,7 @@ def run_posterior(
     out.mkdir(parents=True, exist_ok=True)
     chain = out / "chain.h5"
     settings_path = out / SETTINGS_FILE
+    _emcee_moves(move)  # a bad name fails here, before the least squares
     requested = {
         "effects": sorted(e.name for e in make_effects(effects)),
         "sample": None if sample is None else _as_list(sample),
@@ -1031,11 +1143,13 @@ def run_posterior(
         "sample_noise": bool(sample_noise),
         "n_walkers": int(n_walkers),
         "seed": int(seed),
+        "move": move,
         "params": None if params is None else {k: float(v) for k, v in params.items()},
     }
     if settings_path.exists():
         with open(settings_path, encoding="utf-8") as fh:
             stored = json.load(fh)
+        stored["requested"].setdefault("move", "stretch")  # the only one before
         diff = {
             k: (stored["requested"].get(k), v)
             for k, v in requested.items()
@@ -1068,11 +1182,13 @@ def run_posterior(
     )
     say(
         f"sampling {', '.join(problem.names)} with {n_walkers} walkers (likelihood "
-        f"{problem.likelihood}); until {tau_factor:g} tau or {max_steps} steps"
+        f"{problem.likelihood}, {move} move, on {len(_devices(devices) or (0,))} "
+        f"device(s)); until {tau_factor:g} tau or {max_steps} steps"
     )
     run = sample_posterior(
         problem, chain, n_walkers=n_walkers, max_steps=max_steps, seed=seed, chunk=chunk,
-        tau_factor=tau_factor, batch=batch, progress=progress_bar,
+        tau_factor=tau_factor, batch=batch, move=move, devices=devices,
+        progress=progress_bar,
     )  # fmt: skip
     say(
         f"{run.iteration} steps, max tau {np.max(run.tau):.1f}: "

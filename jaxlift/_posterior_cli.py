@@ -3,10 +3,35 @@
 from __future__ import annotations
 
 import argparse
+import os
+
+
+def _cpu_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def _split_cpu(n: int) -> None:
+    """One XLA CPU device per core, so that the walkers run on all cores (one jitted
+    batch split across the devices: ``make_log_prob(devices=...)``). Possible only
+    before the process's first JAX operation; else the devices stay as they are."""
+    import jax
+
+    try:
+        jax.config.update("jax_num_cpu_devices", n)
+    except RuntimeError:  # JAX already running (e.g. main() called in a test)
+        pass
 
 
 def cmd_posterior(args) -> int:
     import pathlib
+
+    n_dev = _cpu_cores() if args.devices is None else args.devices
+    _split_cpu(n_dev)
+
+    import jax
 
     import jaxlift as jl
     from jaxlift._cli import _read_logs
@@ -41,6 +66,8 @@ def cmd_posterior(args) -> int:
         seed=args.seed,
         n_predictive=args.predictive,
         beta_oil=args.beta_oil,
+        move=args.move,
+        devices=None if args.devices is None else min(args.devices, len(jax.local_devices())),
         progress=lambda line: print(line, flush=True),
         progress_bar=True,
     )
@@ -65,6 +92,8 @@ def cmd_posterior(args) -> int:
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Add this module's sub-commands to ``jaxlift``'s parser."""
+    from jaxlift._posterior import DEFAULT_MOVE, MOVES
+
     p = sub.add_parser(
         "posterior",
         help="posterior uncertainty of the bulk modulus and friction (emcee), air content",
@@ -104,4 +133,21 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "--predictive", type=int, default=64, help="posterior-predictive draws (default 64)"
     )
     p.add_argument("--beta-oil", type=float, default=1.4e9, help="bulk modulus of ideal oil [Pa]")
+    p.add_argument(
+        "--move",
+        choices=MOVES,
+        default=DEFAULT_MOVE,
+        help=f"emcee proposal (default {DEFAULT_MOVE}: differential evolution with snooker "
+        "moves, about 3x shorter autocorrelation times than stretch, emcee's default, on "
+        "the shipped logs; kde: shorter still on a well-behaved posterior, but can strand "
+        "walkers; see benchmarks/results_posterior.txt); a chain resumes with the move it "
+        "was started with",
+    )
+    p.add_argument(
+        "--devices",
+        type=int,
+        default=None,
+        help="split each batch of walkers across this many XLA CPU devices, one per core "
+        "(default: the number of cores; 1: one device)",
+    )
     p.set_defaults(func=cmd_posterior)

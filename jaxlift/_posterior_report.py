@@ -160,6 +160,9 @@ def write_outputs(
         "thin": thin["thin"],
         "n_draws": int(flat.shape[0]),
         "wall_s_this_run": run.wall_s,
+        "move": run.move,
+        "n_walkers": run.n_walkers,
+        "n_devices_this_run": run.n_devices,
         "summary": rows,
         "air": air,
         "effects": list(problem.effects),
@@ -201,6 +204,7 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
     rep.text(
         f"Logs: {', '.join(f'`{lg.name}`' for lg in logs)}. Model: baseline"
         f"{''.join(' + ' + e for e in problem.effects)}. Sampled (emcee ensemble sampler, "
+        f"{run.move} move, "
         f"{run.tau.size} coordinates): {', '.join(f'`{n}`' for n in problem.names)}. "
         f"Chain: {conv}."
     )

@@ -3,6 +3,9 @@ air content, command line."""
 
 import json
 import math
+import subprocess
+import sys
+import textwrap
 
 import emcee
 import jax
@@ -159,6 +162,7 @@ def test_resume_equals_uninterrupted_and_seeds(problem, log_prob, tmp_path):
     assert chain(tmp_path / "b.h5")[0].shape[0] == 17
     resumed = run(tmp_path / "b.h5", 30)
     assert resumed.resumed_from == 17 and resumed.iteration == 30
+    assert resumed.move == "de-snooker"  # the default
     (ca, la), (cb, lb) = chain(tmp_path / "a.h5"), chain(tmp_path / "b.h5")
     assert np.array_equal(ca, cb) and np.array_equal(la, lb)  # bit for bit
     run(tmp_path / "c.h5", 30)  # same seed: same numbers
@@ -166,6 +170,96 @@ def test_resume_equals_uninterrupted_and_seeds(problem, log_prob, tmp_path):
     assert np.array_equal(ca, cc) and np.array_equal(la, lc)
     run(tmp_path / "d.h5", 30, seed=4)  # another seed: another chain
     assert not np.array_equal(ca, chain(tmp_path / "d.h5")[0])
+
+
+def test_move_choice_stored_and_kept_on_resume(problem, tmp_path):
+    with pytest.raises(ValueError, match="move must be one of"):
+        sample_posterior(problem, tmp_path / "x.h5", n_walkers=WALKERS, move="bogus")
+    n = 20  # 10 per batch: enough points for the KDE of the complementary half in 5-D
+    f = make_log_prob(problem)
+
+    def run(path, max_steps, move, progress=False):
+        return sample_posterior(
+            problem, path, n_walkers=n, max_steps=max_steps, seed=5, chunk=10, move=move,
+            log_prob=f, progress=progress,
+        )  # fmt: skip
+
+    class Killed(Exception):
+        pass
+
+    def kill_at_7(it):
+        if it == 7:
+            raise Killed
+
+    full = run(tmp_path / "a.h5", 12, "kde")
+    assert full.move == "kde"
+    with pytest.raises(Killed):
+        run(tmp_path / "b.h5", 12, "kde", progress=kill_at_7)
+    with pytest.raises(ValueError, match="'kde' move.*'stretch'"):
+        run(tmp_path / "b.h5", 12, "stretch")  # another move on a stored chain: refused
+    assert run(tmp_path / "b.h5", 12, "kde").resumed_from == 7
+    a = emcee.backends.HDFBackend(str(tmp_path / "a.h5"), name="mcmc", read_only=True)
+    b = emcee.backends.HDFBackend(str(tmp_path / "b.h5"), name="mcmc", read_only=True)
+    assert np.array_equal(a.get_chain(), b.get_chain()) and b.iteration == 12
+    assert a.accepted.sum() > 0  # KDE proposals do get accepted
+    # another move: another chain (same seed, same start)
+    run(tmp_path / "c.h5", 12, "stretch")
+    c = emcee.backends.HDFBackend(str(tmp_path / "c.h5"), name="mcmc", read_only=True)
+    assert not np.array_equal(c.get_chain(), a.get_chain())
+
+
+_TWO_DEVICES = """
+import json, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_num_cpu_devices", 2)
+import numpy as np
+sys.path.insert(0, {tests!r})
+from test_posterior import WALKERS, synthetic_logs
+from jaxlift._posterior import make_log_prob, problem_from_settings, sample_posterior
+problem = problem_from_settings(json.load(open({settings!r})), synthetic_logs())
+th = np.asarray(json.load(open({thetas!r})))
+f2 = make_log_prob(problem)
+assert len(jax.devices()) == 2 and f2.n_devices == 2
+lp2 = f2(th)
+lp2_odd = f2(th[:5])  # padded to a multiple of the devices
+sample_posterior(problem, {chain!r}, n_walkers=WALKERS, max_steps=6, seed=3, log_prob=f2)
+print(json.dumps({{"lp2": lp2.tolist(), "lp2_odd": lp2_odd.tolist()}}))
+"""
+
+
+@pytest.mark.slow
+def test_two_cpu_devices_give_the_same_numbers(problem, log_prob, tmp_path):
+    """The walkers split across two XLA CPU devices (one per core, as ``jaxlift
+    posterior`` does): the same log-probabilities and the same chain, bit for bit, as
+    on one device. Needs its own process: the device count is fixed at JAX's start."""
+    import pathlib
+
+    th = _batch(problem, seed=7)
+    (tmp_path / "settings.json").write_text(json.dumps(problem.settings()))
+    (tmp_path / "thetas.json").write_text(json.dumps(th.tolist()))
+    code = _TWO_DEVICES.format(
+        tests=str(pathlib.Path(__file__).parent), settings=str(tmp_path / "settings.json"),
+        thetas=str(tmp_path / "thetas.json"), chain=str(tmp_path / "two.h5"),
+    )  # fmt: skip
+    res = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
+        timeout=600,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert log_prob.n_devices == 1
+    lp1 = log_prob(th)
+    assert np.all(np.isfinite(lp1))
+    assert np.array_equal(np.asarray(out["lp2"]), lp1)
+    assert np.array_equal(np.asarray(out["lp2_odd"]), lp1[:5])
+    sample_posterior(
+        problem, tmp_path / "one.h5", n_walkers=WALKERS, max_steps=6, seed=3, log_prob=log_prob
+    )
+    one = emcee.backends.HDFBackend(str(tmp_path / "one.h5"), name="mcmc", read_only=True)
+    two = emcee.backends.HDFBackend(str(tmp_path / "two.h5"), name="mcmc", read_only=True)
+    assert np.array_equal(one.get_chain(), two.get_chain())
+    assert np.array_equal(one.get_log_prob(), two.get_log_prob())
 
 
 @pytest.mark.slow
@@ -236,6 +330,9 @@ def test_cli_end_to_end(logs, tmp_path, capsys):
     rc = main([*base[:-1], str(out), "--walkers", "14", "--max-steps", "30"])
     err = capsys.readouterr().err
     assert rc == 2 and "n_walkers" in err
+    rc = main([*base, "--max-steps", "30", "--move", "stretch"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "move: stored 'de-snooker', requested 'stretch'" in err
     # draws of the full parameter set for others (the controller)
     effects, draws = posterior_draws(out, 5, seed=1)
     assert effects == [] and len(draws) == 5
