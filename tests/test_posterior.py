@@ -228,7 +228,7 @@ print(json.dumps({{"lp2": lp2.tolist(), "lp2_odd": lp2_odd.tolist()}}))
 """
 
 
-@pytest.mark.slow
+@pytest.mark.extended  # a separate process sampling twice; kept out of CI for time
 def test_two_cpu_devices_give_the_same_numbers(problem, log_prob, tmp_path):
     """The walkers split across two XLA CPU devices (one per core, as ``jaxlift
     posterior`` does): the same log-probabilities and the same chain, bit for bit, as
