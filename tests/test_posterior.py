@@ -293,7 +293,7 @@ def test_truth_inside_90_percent_intervals(problem, log_prob, tmp_path):
     assert hi / lo < 1.1
 
 
-@pytest.mark.slow
+@pytest.mark.extended  # CI time; notebook 03 runs the same pipeline (run_posterior) in CI
 def test_cli_end_to_end(logs, tmp_path, capsys):
     from jaxlift._cli import main
 

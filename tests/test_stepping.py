@@ -206,6 +206,7 @@ def _heights(theta, kind, adjoint, rtol=RTOL):
 THETA0 = jnp.asarray([np.log(1.2e9), 0.0837])
 
 
+@pytest.mark.extended  # CI time (32 s); the step-for-step equivalence is tested above
 def test_jacfwd_and_reverse_mode_match_clip():
     """d(height)/d(log beta, tau_d): forward mode (``ForwardMode``) through the new
     controller equals forward mode through diffrax's; reverse mode
