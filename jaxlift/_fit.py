@@ -37,6 +37,7 @@ from ._lm import levenberg_marquardt
 from ._log import Log
 from ._measurement import MeasurementModel
 from ._model import all_param_infos, model_params, with_params
+from ._parallel import thread_map
 from ._params import ParameterError, ParamInfo, from_unconstrained, to_unconstrained
 from ._plant import Plant
 from ._simulate import Inputs, simulate, x64_check
@@ -456,10 +457,19 @@ def estimate_x0_offsets(
     offset by ~1 sigma throughout, which inflated held-out chi2/N to ~3 with the true
     parameters of a leakage run (measured). The offset is not a prediction of the model,
     so judging a model on held-out logs should not charge it."""
+    return _offsets_and_chi2n(params, effects, logs)[0]
+
+
+def _offsets_and_chi2n(
+    params: Mapping[str, float], effects: Sequence[str], logs: Sequence[Log]
+) -> tuple[dict[str, float], dict[str, float]]:
+    """:func:`estimate_x0_offsets`, and each log's chi2/N (scaled residuals, all its
+    signals) at those offsets -- from the same residuals, no second simulation.
+    Empty dicts if the model cannot be simulated."""
     from ._simulate import make_effects
 
     if not logs:
-        return {}
+        return {}, {}
     effs = make_effects(effects)
     own = {k: v for k, v in params.items() if k in all_param_infos(effs)}
     plant, effs = with_params(Plant(), effs, own)
@@ -468,8 +478,13 @@ def estimate_x0_offsets(
     theta0 = np.zeros(len(experiments))
     run = levenberg_marquardt(problem.residuals_at, problem.jacobian_at, theta0, max_iter=30)
     if not np.isfinite(run.chi2):
-        return {}
-    return {e.name: 1e-3 * float(v) for e, v in zip(experiments, run.theta)}
+        return {}, {}
+    ends = np.cumsum([e.n_residuals for e in experiments])
+    blocks = np.split(np.asarray(run.r), ends[:-1])
+    return (
+        {e.name: 1e-3 * float(v) for e, v in zip(experiments, run.theta)},
+        {e.name: float(np.mean(b**2)) for e, b in zip(experiments, blocks)},
+    )
 
 
 def fit(
@@ -488,6 +503,7 @@ def fit(
     atol: float = 1e-5,
     measurement: MeasurementModel | None = None,
     vectorize: bool = False,
+    workers: int | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> FitResult:
     """Calibrate the model (plant + ``effects``) on ``logs`` by Levenberg--Marquardt.
@@ -515,6 +531,9 @@ def fit(
         rtol, atol: optimistix's Cauchy termination (``method="optimistix"`` only).
         vectorize: with ``method="optimistix"``, solve the starts together with
             ``vmap`` (pays off on accelerators; on CPU a loop is faster).
+        workers: threads running the starts of a stage side by side (``method="lm"``;
+            default one per CPU core, see :mod:`jaxlift._parallel`); the result does
+            not depend on it.
         progress: called with a line of text after each stage (e.g. ``print``); when
             given, a progress bar over the starts is shown too.
 
@@ -574,7 +593,7 @@ def fit(
                 [free_all.index(n) for n in names]
                 + [len(free_all) + j for j in range(problem.n_x0)]
             )
-            runs = _lm_starts(problem, starts, active, max_steps, gtol, progress, desc)
+            runs = _lm_starts(problem, starts, active, max_steps, gtol, progress, desc, workers)
             chi2s = np.array([r.chi2 if np.isfinite(r.chi2) else np.inf for r in runs])
             best = int(np.argmin(chi2s))
             run = _escape_log_traps(problem, runs[best], names, free_all, active, max_steps, gtol)
@@ -671,22 +690,23 @@ def _escape_log_traps(problem, run, names, free_all, active, max_steps, gtol):
     return run
 
 
-def _lm_starts(problem, starts, active, max_steps, gtol, progress, desc):
-    """jaxlift's Levenberg--Marquardt from every start, one after the other (the
+def _lm_starts(problem, starts, active, max_steps, gtol, progress, desc, workers=None):
+    """jaxlift's Levenberg--Marquardt from every start, one thread per core (the
     compiled residuals and Jacobian are shared by all starts and stages)."""
-    runs = []
-    bar = tqdm(starts, desc=desc, unit="start", disable=progress is None, leave=False)
-    for th in bar:
-        run = levenberg_marquardt(
-            problem.residuals_at,
-            problem.jacobian_at,
-            th,
-            active,
-            max_iter=max_steps,
+
+    def run(th):
+        return levenberg_marquardt(
+            problem.residuals_at, problem.jacobian_at, th, active, max_iter=max_steps,
             gtol=gtol,
-        )
-        runs.append(run)
+        )  # fmt: skip
+
+    runs = []
+    bar = tqdm(total=len(starts), desc=desc, unit="start", disable=progress is None, leave=False)
+    for r in thread_map(run, list(starts), workers):
+        runs.append(r)
+        bar.update()
         bar.set_postfix(best_chi2=f"{min(r.chi2 for r in runs):.4g}")
+    bar.close()
     return runs
 
 

@@ -3,14 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import os
 
-
-def _cpu_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
+from ._parallel import cpu_cores
 
 
 def _split_cpu(n: int) -> None:
@@ -28,7 +22,7 @@ def _split_cpu(n: int) -> None:
 def cmd_posterior(args) -> int:
     import pathlib
 
-    n_dev = _cpu_cores() if args.devices is None else args.devices
+    n_dev = cpu_cores() if args.devices is None else args.devices
     _split_cpu(n_dev)
 
     import jax
