@@ -27,11 +27,14 @@ separately; they are paid once per problem shape and process):
 - for reference, L-BFGS and Adam on the same cost and forward-mode gradient (60 and 30
   evaluations).
 
-Reported: each one's final cost and wall time; the time LM needed to get below
-Nelder--Mead's final cost, against (a) Nelder--Mead's total time and (b) the time
-Nelder--Mead needed to first get within 0.1 % of its own final cost (the stricter;
-the target "lower cost in <= 1/5 of the time" is judged on (b)); and Nelder--Mead's
-best cost within LM's wall time (the same-wall-time view).
+Reported: each one's final cost and wall time. The target "lower cost in <= 1/5 of the
+time" is judged as the issue states it: both run on the same cost to their own
+convergence; LM's final cost is lower and its whole wall time is <= 1/5 of
+Nelder--Mead's. Also shown: the time LM needed to get below Nelder--Mead's final cost,
+against (a) Nelder--Mead's total time and (b) the time Nelder--Mead needed to first
+get within 0.1 % of its own final cost (a stricter reading, which credits Nelder--Mead
+with a stopping point it cannot know; information, with its own PASS/MISS); and
+Nelder--Mead's best cost within LM's wall time (the same-wall-time view).
 
 Robust tuning: LM on mean + CVaR20 over 32 parameter draws (``lax.map``), from the
 nominal-tuned and from the starting gains (``tune_multistart``, as ``jaxlift tune``
@@ -194,12 +197,20 @@ def compare(out, nm_hist, nm_time, tr, label):
     below = [t for t, v in zip(tr.history_s, tr.history, strict=True) if v < nm_best]
     t_beat = below[0] if below else float("inf")
     ra, rb = t_beat / nm_time, t_beat / near
+    rw = tr.wall_s / nm_time
+    lower = tr.best_cost < nm_best
     out(
-        f"{label} below Nelder-Mead's final cost ({nm_best:.4g}) after {t_beat:.2f} s: "
-        f"(a) {ra:.3f} of Nelder-Mead's total time ({nm_time:.1f} s), (b) {rb:.3f} of "
-        f"the time Nelder-Mead needed to get within 0.1 % of its final cost ({near:.1f} s) "
-        f"-> {'PASS' if rb <= 0.2 and tr.best_cost < nm_best else 'MISS'} "
-        "(target: lower cost in <= 1/5 of the time, judged on (b))"
+        f"{label}: final cost {tr.best_cost:.4g} vs Nelder-Mead's {nm_best:.4g}, wall time "
+        f"{tr.wall_s:.2f} s = {rw:.3f} of Nelder-Mead's {nm_time:.1f} s "
+        f"-> {'PASS' if rw <= 0.2 and lower else 'MISS'} (the target as the issue states "
+        "it: each on the same cost to its own convergence, lower cost in <= 1/5 of the time)"
+    )
+    out(
+        f"  below Nelder-Mead's final cost after {t_beat:.2f} s: (a) {ra:.3f} of "
+        f"Nelder-Mead's total time, (b) {rb:.3f} of the time Nelder-Mead needed to get "
+        f"within 0.1 % of its final cost ({near:.1f} s) -> stricter reading (b): "
+        f"{'PASS' if rb <= 0.2 and lower else 'MISS'} (Nelder-Mead cannot know it is "
+        "that close; information)"
     )
     nm_at = [v for t, v in nm_hist if t <= tr.wall_s]
     out(
@@ -238,7 +249,11 @@ def main() -> int:
         return jnp.where(sol.ok & jnp.isfinite(c), c, FAILED_COST)
 
     out(f"# bench_tune  {datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M} UTC")
-    out(f"# {_load()} at the start; 2 cores shared with other jobs: timings are pessimistic")
+    busy = os.getloadavg()[0] > 1.5
+    out(
+        f"# {_load()} at the start"
+        + ("; the cores are shared with other jobs: timings are pessimistic" if busy else "")
+    )
     out(
         f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; jax "
         f"{jax.__version__}, scipy {scipy.__version__}; model: {source}"

@@ -5,8 +5,10 @@ shifts, a held-out 1000 kg log; the baseline fits start at the truth of the base
 parameters (the fit from nominal values is tested in test_fit.py), except the
 two-effect test, which runs the whole iteration from nominal values.
 
-All ``extended``: each case is a baseline fit, eight screens and a confirmation refit
-per significant candidate (~1-3 min each on 2 cores); run with ``-m extended``."""
+Each case is a baseline fit, eight screens and a confirmation refit per significant
+candidate (25 s to 5 min on 2 cores): the null case and two hidden effects (leakage,
+mast compliance) run in CI (``slow``), the rest with ``-m extended`` (19 min in all,
+measured 2026-11-23)."""
 
 import jax
 import numpy as np
@@ -89,7 +91,7 @@ def test_screen_ranks_hidden_leakage_first(leaky):
     assert ranking[0].z > 5
 
 
-@pytest.mark.extended
+@pytest.mark.slow
 def test_screen_finds_nothing_when_nothing_is_hidden(clean):
     logs, base = clean
     ranking = screen_effects(base, logs)
@@ -108,7 +110,7 @@ def test_verdict_leakage_and_error_falls(leaky):
     assert abs(top.fitted_params["C_L"] / 2e-13 - 1) < 0.2
 
 
-@pytest.mark.extended
+@pytest.mark.slow
 def test_verdict_none_when_nothing_is_hidden(clean):
     logs, base = clean
     d = diagnose(logs, base=base)
@@ -124,8 +126,17 @@ def test_hidden_table_covers_every_effect():
         assert hidden[sw] >= 0.3 * infos[sw].scale  # well away from "switched off"
 
 
-@pytest.mark.extended
-@pytest.mark.parametrize("effect", list(HIDDEN))
+#: the cases the CI runs (~25 s each on 2 cores); the others take 30-300 s (extended)
+IN_CI = ("leakage", "mast_compliance")
+
+
+@pytest.mark.parametrize(
+    "effect",
+    [
+        pytest.param(e, marks=pytest.mark.slow if e in IN_CI else pytest.mark.extended)
+        for e in HIDDEN
+    ],
+)
 def test_verdict_names_each_hidden_effect(effect):
     hidden = HIDDEN[effect]
     logs = _logs(hidden, effects=(effect,))
@@ -165,4 +176,4 @@ def test_backward_check_drops_the_effect_that_only_mimicked_another():
     model = fit(logs, effects=effects, init=init, free="all,effects", staged=False, n_starts=1)
     name, dbic, reduced = _backward_check(model, logs, ["leakage", "input_delay"], "all", 0)
     assert name == "input_delay" and dbic < 10, (name, dbic)
-    assert list(reduced.effects) == ["leakage", "motor_inertia"]
+    assert set(reduced.effects) == {"leakage", "motor_inertia"}  # (in registry order)
