@@ -240,7 +240,8 @@ def test_robust_tuning_has_better_worst_case_on_held_out_draws(fit_dir):
     nominal plant. Measured (this code, 2 cores): held-out worst case 13.58 -> 12.92,
     mean 4.46 -> 4.31; over 208 held-out draws in 13 blocks of 16 the worst case was
     lower in every block (ratios 0.90-1.00), the mean too, 71 % of the draws better:
-    a modest effect (~5 %), but a real one."""
+    a modest effect (~5 %), but a real one; its size depends on the machine (2.6 % on
+    another of the same kind), so only its direction is asserted."""
     draws = parameter_draws(6 + 16, 11, fit_dir=fit_dir)
     tune_set, held_out = draws.split(6)
     nominal = tune_gains(START, PLANT, (), [REF], steps=25, rtol=1e-6)
@@ -258,7 +259,13 @@ def test_robust_tuning_has_better_worst_case_on_held_out_draws(fit_dir):
     # on the tuning draws the robust objective went down against the nominal gains'
     assert robust.best_cost < 0.97 * float(robust_objective(jnp.asarray(c_nom[:6]), alpha=0.34))
     c_nom, c_rob = c_nom[6:], c_rob[6:]
-    assert c_rob.max() < 0.97 * c_nom.max(), (c_rob.max(), c_nom.max())
+    # On held-out draws the claim is the direction, not a size: the 3 % margin asked
+    # before sat inside machine-to-machine differences (4.9 % here, 2.6 % on another
+    # machine of the same kind: LM paths differ with the CPU's rounding). Worst case,
+    # the robust objective (mean + CVaR of the worst third) and mean must all be lower.
+    assert c_rob.max() < c_nom.max(), (c_rob.max(), c_nom.max())
+    obj = lambda c: float(robust_objective(jnp.asarray(c), alpha=0.34))
+    assert obj(c_rob) < obj(c_nom), (obj(c_rob), obj(c_nom))
     assert c_rob.mean() < c_nom.mean(), (c_rob.mean(), c_nom.mean())
     assert _cost(robust.controller) > _cost(nominal.controller)  # the price on the nominal plant
 
