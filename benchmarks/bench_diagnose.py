@@ -8,11 +8,12 @@ Run from the repository root::
 
 Prints the wall time of each part and writes the same text to
 ``benchmarks/results_diagnose.txt``. There is no peer to compare with (no library
-packages a score test for omitted ODE terms, see STACK-NOTES); the target is absolute.
+packages a score test for omitted ODE terms: SINDy-like tools find terms, not named
+effects); the target is absolute.
 The settings are those of ``jaxlift diagnose --once`` (staged baseline fit from the
 nominal values, 2 starts per stage; every candidate whose screen exceeds z = 3 is
 confirmed by a refit), all compilation included. Independent fits (starts, screens,
-refits) run on one thread per core (``jaxlift._parallel``), as in ``jaxlift diagnose``.
+refits) run on one thread per core (``jaxlift.calibrate.parallel``), as in ``jaxlift diagnose``.
 """
 
 from __future__ import annotations
@@ -28,8 +29,8 @@ import time
 from pathlib import Path
 
 import jaxlift as jl
-from jaxlift._diagnose import diagnose
-from jaxlift._fit import fit
+from jaxlift.calibrate.diagnose import diagnose
+from jaxlift.calibrate.fit import fit
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent

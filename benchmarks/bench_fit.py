@@ -12,7 +12,7 @@ Both sides fit the 11 baseline parameters the thesis estimates to the same two
 synthetic logs (made by jaxlift at the known truth of ``tests/test_fit.py``), from the
 same start, in the same unconstrained coordinates (jaxlift's ``to_unconstrained``),
 with the same residuals (height / 0.5 mm, speed / sigma_v; both simulations start from
-the log's mean initial-hold height). jaxlift: ``jaxlift._fit.fit`` (optimistix
+the log's mean initial-hold height). jaxlift: ``jaxlift.calibrate.fit.fit`` (optimistix
 Levenberg--Marquardt, forward-mode Jacobian through diffrax). The peer:
 ``scipy.optimize.least_squares`` (trust-region reflective, 2-point finite-difference
 Jacobian) driving ``tests/scipy_reference.py`` (``solve_ivp`` LSODA, integration
@@ -45,9 +45,11 @@ import scipy
 from scipy.optimize import least_squares
 
 import jaxlift as jl
-from jaxlift._fit import FAILED_RESIDUAL, _Problem, fit, make_experiments
-from jaxlift._model import all_param_infos
-from jaxlift._sequences import THESIS_LIKE_SECTIONS, ramped_sequence
+from jaxlift.calibrate.experiment import FAILED_RESIDUAL, make_experiments
+from jaxlift.calibrate.fit import fit
+from jaxlift.calibrate.problem import Problem as _Problem
+from jaxlift.model.build import all_param_infos
+from jaxlift.model.sequences import THESIS_LIKE_SECTIONS, ramped_sequence
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "tests"))
@@ -107,7 +109,7 @@ def fmt_t(s: float) -> str:
 def make_logs(dt: float) -> list[jl.Log]:
     """The two synthetic logs. At 100 Hz these are exactly ``tests/test_fit.py``'s;
     ``--quick`` makes the same runs sampled at a lower rate (same sequence, seeds and
-    noise model; the speed noise follows the sample rate as in MODEL.md)."""
+    noise model; the speed noise follows the sample rate as in docs/model.md)."""
     if dt == 0.01:
         return _synthetic_logs(TRUTH)
     plant, _ = jl.with_params(jl.Plant(), (), TRUTH)
@@ -244,7 +246,7 @@ def main() -> None:
         f"data: {len(logs)} synthetic logs from jaxlift at the truth of tests/test_fit.py "
         f"(thesis-like sequence, {', '.join(f'{lg.load_kg[0]:.0f}' for lg in logs)} kg, "
         f"{logs[0].time_s[-1]:.0f} s at {1 / logs[0].sample_period:.0f} Hz, {logs[0].n} samples "
-        f"each; MODEL.md sensor noise, seeds 11, 12; no hidden effect); {n_res} residuals "
+        f"each; docs/model.md sensor noise, seeds 11, 12; no hidden effect); {n_res} residuals "
         "(height, speed)"
     )
     say(
@@ -259,7 +261,7 @@ def main() -> None:
     )
     say(
         "jaxlift: fit(free='all', staged=False, n_starts=1): jaxlift's Levenberg-Marquardt "
-        "(jaxlift/_lm.py: residuals at trial points, forward-mode Jacobian at accepted "
+        "(jaxlift/calibrate/lm.py: residuals at trial points, forward-mode Jacobian at accepted "
         "ones, stop when the Gauss-Newton decrease < 0.01 s^2)"
     )
     say(
@@ -283,7 +285,7 @@ def main() -> None:
     t_lm = res2.stages[0].wall_s
     steps_lm = res2.stages[0].num_steps
     lm_agrees = abs(res2.chi2 - res.chi2) < 1e-9 * res.chi2
-    # optimistix's Levenberg--Marquardt on the same problem (fit(method="optimistix")),
+    # optimistix's Levenberg--Marquardt on the same problem (fit(solver=OptimistixLM())),
     # for reference: compiled afresh on each call
     t0 = time.perf_counter()
     res_ox = fit(logs, free="all", init=start, staged=False, n_starts=1, method="optimistix")

@@ -54,13 +54,10 @@ from pathlib import Path
 import numpy as np
 
 import jaxlift as jl
-from jaxlift._posterior import (
-    DEFAULT_MOVE,
-    MOVES,
-    make_log_prob,
-    prepare_posterior,
-    sample_posterior,
-)
+from jaxlift.posterior.likelihood import make_log_prob
+from jaxlift.posterior.moves import DEFAULT_MOVE, MOVES
+from jaxlift.posterior.problem import prepare_posterior
+from jaxlift.posterior.sampler import sample_posterior
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -127,7 +124,7 @@ def bench_chain(problem, steps: int, quick: bool, move: str = DEFAULT_MOVE) -> d
         t0 = time.perf_counter()
         run = sample_posterior(
             problem, Path(d) / "chain.h5", n_walkers=32, max_steps=steps, seed=0, chunk=50,
-            log_prob=f, progress=True, move=move, tau_factor=1e9 if quick else 50.0,
+            log_prob=f, progress=True, move=MOVES[move](), tau_factor=1e9 if quick else 50.0,
         )  # fmt: skip
         wall = time.perf_counter() - t0
     per_step = wall / max(run.iteration, 1)
@@ -250,7 +247,7 @@ def main() -> int:
                 t0 = time.perf_counter()
                 run = sample_posterior(
                     problem, Path(d) / "chain.h5", n_walkers=32, max_steps=n, seed=0,
-                    chunk=50, move=mv, tau_factor=1e9, log_prob=make_log_prob(problem),
+                    chunk=50, move=MOVES[mv](), tau_factor=1e9, log_prob=make_log_prob(problem),
                 )  # fmt: skip
                 wall = time.perf_counter() - t0
                 b = emcee.backends.HDFBackend(str(Path(d) / "chain.h5"), name="mcmc",

@@ -9,7 +9,7 @@ Prints a table (each measured number, its target, PASS/MISS) and writes the same
 to ``benchmarks/results_simulate.txt``. See ``benchmarks/README.md``.
 
 The peer is ``tests/scipy_reference.py``: an independent plain-float implementation of
-MODEL.md, integrated piecewise between input jumps (restarted at every jump, analytic
+docs/model.md, integrated piecewise between input jumps (restarted at every jump, analytic
 Jacobian), by ``solve_ivp(method="LSODA")``; ``odeint`` (ODEPACK's LSODA driven with
 less Python per call) is shown as a second, faster SciPy peer for information.
 """
@@ -35,6 +35,8 @@ import numpy as np
 import scipy
 
 import jaxlift as jl
+from jaxlift.model.simulate import DTMAX, error_norm
+from jaxlift.model.vector_field import initial_state, lift_vector_field
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "tests"))
@@ -54,8 +56,8 @@ TRUE = {"beta": 0.5e9}
 #: Estimated in the thesis: the forward-mode Jacobian's parameters.
 ESTIMATED = ("k1", "k2", "k3", "z1", "z2", "z3", "beta", "cf_con", "cf_in", "cf_out", "d")
 N_BATCH = 32
-SIGMA_H = 5e-4  # m, height noise of the wire sensor (MODEL.md)
-SIGMA_V = float(np.sqrt(1e-7 * 100.0))  # m/s, speed noise at 100 Hz (MODEL.md)
+SIGMA_H = 5e-4  # m, height noise of the wire sensor (docs/model.md)
+SIGMA_V = float(np.sqrt(1e-7 * 100.0))  # m/s, speed noise at 100 Hz (docs/model.md)
 
 _lines: list[str] = []
 
@@ -146,20 +148,16 @@ def main() -> None:
     @eqx.filter_jit
     def forward_clip(plant, inputs):
         """The same solve with diffrax's ClipStepSizeController(jump_ts=...), which
-        jaxlift used before JumpStepSizeController (jaxlift/_stepping.py)."""
-        from jaxlift import _simulate
-
+        jaxlift used before JumpStepSizeController (jaxlift/model/stepping.py)."""
         atol = jnp.asarray(ATOL)
-        pid = diffrax.PIDController(
-            rtol=RTOL, atol=atol, dtmax=_simulate.DTMAX, norm=_simulate._error_norm
-        )
+        pid = diffrax.PIDController(rtol=RTOL, atol=atol, dtmax=DTMAX, norm=error_norm)
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(_simulate._vector_field),
+            diffrax.ODETerm(lift_vector_field),
             diffrax.Tsit5(),
             t0=inputs.ts[0],
             t1=inputs.ts[-1],
             dt0=None,
-            y0=_simulate.initial_state(plant, (), inputs),
+            y0=initial_state(plant, (), inputs),
             args=(plant, (), inputs),
             saveat=diffrax.SaveAt(ts=inputs.ts),
             stepsize_controller=diffrax.ClipStepSizeController(pid, jump_ts=inputs.jump_ts),

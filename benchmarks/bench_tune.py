@@ -7,7 +7,7 @@ Run from the repository root::
     .venv/bin/python benchmarks/bench_tune.py [--quick]
 
 Problem: the plain PID's five gains (P, I, D, N, K_aw) in the same log coordinates
-(``jaxlift._tuning.GainSpace``), from the thesis PID (K_aw = I/P), on the same cost
+(``jaxlift.control.gains.GainSpace``), from the thesis PID (K_aw = I/P), on the same cost
 (``tuning_cost``: ``cost_from_figures`` of the closed-loop run along the thesis-like
 110 s reference at 1000 kg, continuous controller, solver rtol 1e-5) on the plant of
 the baseline fit of the shipped logs (``runs/fit_baseline/params.json`` if present,
@@ -68,18 +68,14 @@ import scipy
 from scipy.optimize import minimize
 
 import jaxlift as jl
-from jaxlift._closed_loop import simulate_closed_loop, thesis_reference
-from jaxlift._control import PID, THESIS_PID, ScheduledPID
-from jaxlift._tuning import (
-    FAILED_COST,
-    GainSpace,
-    _run,
-    batch_models,
-    parameter_draws,
-    tune_gains,
-    tune_multistart,
-    tuning_cost,
-)
+from jaxlift.control.closed_loop import simulate_closed_loop
+from jaxlift.control.controller import PID, THESIS_PID, ScheduledPID
+from jaxlift.control.cost import FAILED_COST, _run, tuning_cost
+from jaxlift.control.draws import batch_models, parameter_draws
+from jaxlift.control.gains import GainSpace
+from jaxlift.control.optimisers import LBFGS, Adam, LevenbergMarquardt
+from jaxlift.control.reference import thesis_reference
+from jaxlift.control.tune import tune_gains, tune_multistart
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -116,10 +112,10 @@ def draws(n, tmp: Path):
 NOTES = """
 ## notes (measured separately from this script, same plant, 2026-11-23)
 - The cost is a sum of squares: every figure in cost_from_figures is an RMS or a mean,
-  so jaxlift._tuning.tuning_residuals writes it as one residual vector (error samples,
+  so jaxlift.control.cost.tuning_residuals writes it as one residual vector (error samples,
   band-passed error, the same on the steady samples, 10 ms duty rate on the moving
   samples, the two post-shift offsets, the noise amplification; sum(r^2) equals
-  tuning_cost to 1e-12, tests/test_tuning.py). LM (jaxlift/_lm.py) on it with the
+  tuning_cost to 1e-12, tests/test_tuning.py). LM (jaxlift/calibrate/lm.py) on it with the
   forward-mode Jacobian is now the default of tune_gains.
 - Why L-BFGS stalls (it did at 1.225 in the previous run, at 1.163 after 60 evaluations
   here): the Gauss-Newton Hessian 2 J^T J of the cost in log gains has eigenvalues
@@ -131,7 +127,7 @@ NOTES = """
   still predicts a 6 % decrease. Gauss-Newton takes the scale from J^T J itself.
 - LM's first two trial points from the thesis gains fail (the undamped Gauss-Newton
   step lowers K_aw, the flat direction, by e^11). Each costs a Jacobian evaluation. A
-  start damping option in jaxlift/_lm.py would save them (not changed here: another
+  start damping option in jaxlift/calibrate/lm.py would save them (not changed here: another
   session's file); a trust region of 1 in log gains, tried, made the path worse (1.139
   after 26 evaluations instead of 1.095): the cost has several basins.
 - Per evaluation, Nelder-Mead's cost is one 110 s simulation (12-25 ms, depending on
@@ -267,9 +263,10 @@ def main() -> int:
     nm_compile = time.perf_counter() - t
     out(f"# thesis PID (K_aw = I/P) cost on the 110 s reference: {c0:.4g}")
     compile_s = {}
-    for method in ("lm", "lbfgs", "adam"):
+    optimisers = {"lm": LevenbergMarquardt(), "lbfgs": LBFGS(), "adam": Adam()}
+    for method, optimiser in optimisers.items():
         t = time.perf_counter()
-        tune_gains(start, plant, effects, [ref], steps=1, rtol=RTOL, method=method)
+        tune_gains(start, plant, effects, [ref], steps=1, rtol=RTOL, optimiser=optimiser)
         compile_s[method] = time.perf_counter() - t
 
     # ---------------------------------------------------------------- plain PID
@@ -279,10 +276,10 @@ def main() -> int:
     runs = {
         "lm": tune_gains(start, plant, effects, [ref], steps=lm_evals, rtol=RTOL),
         "lbfgs": tune_gains(
-            start, plant, effects, [ref], steps=lbfgs_evals, rtol=RTOL, method="lbfgs"
+            start, plant, effects, [ref], steps=lbfgs_evals, rtol=RTOL, optimiser=LBFGS()
         ),
         "adam": tune_gains(
-            start, plant, effects, [ref], steps=adam_steps, rtol=RTOL, method="adam"
+            start, plant, effects, [ref], steps=adam_steps, rtol=RTOL, optimiser=Adam()
         ),
     }
     out("| optimiser | evaluations | final cost | wall time [s] | compile [s] | stopped |")

@@ -39,7 +39,7 @@ jax.config.update("jax_enable_x64", True)  # jaxlift needs float64; set it at th
 import numpy as np  # noqa: E402
 
 import jaxlift as jl  # noqa: E402
-from jaxlift._workflows import run_fit  # noqa: E402
+from jaxlift.workflows.fit import run_fit  # noqa: E402
 
 SMALL = os.environ.get("JAXLIFT_NOTEBOOK_BUDGET") == "small"
 ROOT = pathlib.Path(os.environ.get("JAXLIFT_ROOT", pathlib.Path.cwd().parent))
@@ -60,7 +60,7 @@ for log in fit_logs + held_out:
 
 # %% [markdown]
 # ## The nominal model against the measurement
-# The nominal parameters of MODEL.md (the thesis's "before" column) miss badly: the
+# The nominal parameters of docs/model.md (the thesis's "before" column) miss badly: the
 # motor map is off (the fork arrives at the wrong height) and the oscillations are wrong.
 
 # %%

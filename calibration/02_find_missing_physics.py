@@ -56,7 +56,7 @@ held_out = [load("validation_1000kg.csv")]
 
 # %% [markdown]
 # ## How the diagnosis decides
-# For every candidate effect of MODEL.md (stick-slip, motor inertia, motor droop,
+# For every candidate effect of docs/model.md (stick-slip, motor inertia, motor droop,
 # leakage, entrained air, hose compliance, mast compliance, input delay):
 #
 # 1. **screen** without refitting: the score test — how strongly the residuals of the

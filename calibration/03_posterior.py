@@ -45,7 +45,9 @@ jax.config.update("jax_enable_x64", True)  # jaxlift needs float64; set it at th
 jax.config.update("jax_num_cpu_devices", os.cpu_count() or 1)
 
 import jaxlift as jl  # noqa: E402
-from jaxlift._posterior import DEFAULT_PRIORS, posterior_draws, run_posterior  # noqa: E402
+from jaxlift.posterior.predictive import posterior_draws  # noqa: E402
+from jaxlift.posterior.priors import DEFAULT_PRIORS  # noqa: E402
+from jaxlift.workflows.posterior import run_posterior  # noqa: E402
 
 SMALL = os.environ.get("JAXLIFT_NOTEBOOK_BUDGET") == "small"
 ROOT = pathlib.Path(os.environ.get("JAXLIFT_ROOT", pathlib.Path.cwd().parent))
@@ -121,7 +123,7 @@ for row in res["summary"]:
 # %% [markdown]
 # ## Air in the oil
 # The effective bulk modulus of the baseline model lumps together everything that
-# makes the oil column soft. Attributing it all to air (MODEL.md), the gas volume
+# makes the oil column soft. Attributing it all to air (docs/model.md), the gas volume
 # fraction at the mean working pressure is `phi = p (1/beta - 1/beta_oil)`.
 
 # %%

@@ -10,35 +10,45 @@ The public surface. Enable float64 at the start of your program::
     sol = jl.simulate(jl.Plant(), jl.make_effects("hose_compliance"), jl.Inputs.from_log(log))
 """
 
-from ._closed_loop import (
-    ClosedLoopSolution,
-    Reference,
-    SampledFilterWarning,
-    simulate_closed_loop,
-    thesis_reference,
-)
-from ._control import PID, AbstractController, ScheduledPID, load_gains, save_gains
-from ._diagnose import (
+from importlib.metadata import version as _version
+
+from .calibrate.diagnose import (
     Diagnosis,
     EffectScreen,
     diagnose,
     diagnose_iteratively,
     screen_effects,
 )
-from ._effects import EFFECTS, AbstractEffect, AbstractStatelessEffect, Signals
-from ._effects.entrained_air import EntrainedAir
-from ._effects.hose_compliance import HoseCompliance
-from ._effects.input_delay import InputDelay
-from ._effects.leakage import Leakage
-from ._effects.mast_compliance import MastCompliance
-from ._effects.motor_droop import MotorDroop
-from ._effects.motor_inertia import MotorInertia
-from ._effects.stick_slip import StickSlip
-from ._fit import PARAMETER_SETS, FitResult, evaluate, fit
-from ._log import Log, LogError, UnusedColumnsWarning, read_log, write_log
-from ._measurement import MeasurementModel, measure, to_log
-from ._model import all_param_infos, load_model, model_params, with_params
-from ._params import (
+from .calibrate.experiment import PARAMETER_SETS
+from .calibrate.fit import evaluate, fit
+from .calibrate.result import FitResult
+from .calibrate.solvers import LM, OptimistixLM
+from .control.closed_loop import ClosedLoopSolution, SampledFilterWarning, simulate_closed_loop
+from .control.controller import PID, AbstractController, ScheduledPID, load_gains, save_gains
+from .control.cost import tuning_residuals
+from .control.draws import parameter_draws
+from .control.optimisers import LBFGS, Adam, LevenbergMarquardt
+from .control.performance import CostWeights, Figures
+from .control.performance import figures as closed_loop_figures
+from .control.reference import Reference, thesis_reference
+from .control.stability import closed_loop_eigenvalues, stability_table
+from .control.tune import TuneResult, tune_gains, tune_multistart
+from .model.build import Model, all_param_infos, load_model, make_effects, model_params, with_params
+from .model.constants import BETA_OIL
+from .model.effects import EFFECTS, AbstractEffect, AbstractStatelessEffect, Signals
+from .model.effects.entrained_air import EntrainedAir
+from .model.effects.hose_compliance import HoseCompliance
+from .model.effects.input_delay import InputDelay
+from .model.effects.leakage import Leakage
+from .model.effects.mast_compliance import MastCompliance
+from .model.effects.motor_droop import MotorDroop
+from .model.effects.motor_inertia import MotorInertia
+from .model.effects.stick_slip import StickSlip
+from .model.inputs import Inputs, initial_height
+from .model.log import Log, read_log, write_log
+from .model.log_validation import LogError, UnusedColumnsWarning
+from .model.measurement import MeasurementModel, measure, to_log
+from .model.params import (
     ParameterError,
     ParamInfo,
     from_unconstrained,
@@ -50,50 +60,44 @@ from ._params import (
     save_params_json,
     to_unconstrained,
 )
-from ._performance import CostWeights, Figures
-from ._performance import figures as closed_loop_figures
-from ._plant import Plant
-from ._posterior import (
-    AIR_THRESHOLD,
-    BETA_OIL,
-    DEFAULT_PRIORS,
-    LogNormal,
-    PosteriorProblem,
-    SamplerRun,
-    Uniform,
-    air_content,
-    make_log_prob,
-    mean_working_pressure,
-    posterior_draws,
-    posterior_samples,
-    prepare_posterior,
-    run_posterior,
-    sample_posterior,
-)
-from ._simulate import (
-    Inputs,
-    SimulationError,
-    Solution,
-    initial_height,
-    make_effects,
-    plant_signals_and_derivative,
-    simulate,
-)
-from ._tuning import (
-    TuneResult,
-    closed_loop_eigenvalues,
-    parameter_draws,
-    robustness_report,
-    stability_table,
-    tune_gains,
-    tune_multistart,
-    tuning_residuals,
-)
-from ._workflows import run_diagnose, run_fit
+from .model.plant import Plant
+from .model.simulate import simulate
+from .model.solution import AbstractSolution, SimulationError, Solution
+from .model.vector_field import plant_signals_and_derivative
+from .posterior.air import AIR_THRESHOLD, air_content, mean_working_pressure
+from .posterior.likelihood import make_log_prob
+from .posterior.moves import AbstractMove, DEMove, DESnookerMove, KDEMove, StretchMove
+from .posterior.predictive import posterior_draws
+from .posterior.priors import DEFAULT_PRIORS, LogNormal, Uniform
+from .posterior.problem import PosteriorProblem, prepare_posterior
+from .posterior.sampler import SamplerRun, posterior_samples, sample_posterior
+from .report.tuning import robustness_report
+from .workflows.diagnose import run_diagnose
+from .workflows.fit import run_fit
+from .workflows.posterior import run_posterior
+from .workflows.simulate import run_simulate
+from .workflows.tune import TuneRun, calibrated_model, run_control_simulate, run_tune
 
-__version__ = "0.1.0"
+__version__ = _version("jaxlift")
 
 __all__ = [
+    "run_simulate",
+    "Model",
+    "AbstractSolution",
+    "LM",
+    "OptimistixLM",
+    "LBFGS",
+    "Adam",
+    "LevenbergMarquardt",
+    "AbstractMove",
+    "DEMove",
+    "DESnookerMove",
+    "KDEMove",
+    "StretchMove",
+    "TuneRun",
+    "calibrated_model",
+    "run_control_simulate",
+    "run_tune",
     "AIR_THRESHOLD",
     "BETA_OIL",
     "DEFAULT_PRIORS",

@@ -46,20 +46,16 @@ import json  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxlift as jl  # noqa: E402
-from jaxlift._closed_loop import simulate_closed_loop, thesis_reference  # noqa: E402
-from jaxlift._control import PID, THESIS_PID, save_gains  # noqa: E402
-from jaxlift._performance import figures  # noqa: E402
-from jaxlift._report import Report  # noqa: E402
-from jaxlift._tuning import (  # noqa: E402
-    batch_models,
-    evaluate_draws,
-    parameter_draws,
-    plot_response,
-    stability_table,
-    tune_gains,
-    tune_multistart,
-    tuning_cost,
-)
+from jaxlift.control.closed_loop import simulate_closed_loop  # noqa: E402
+from jaxlift.control.controller import PID, THESIS_PID, save_gains  # noqa: E402
+from jaxlift.control.cost import tuning_cost  # noqa: E402
+from jaxlift.control.draws import batch_models, evaluate_draws, parameter_draws  # noqa: E402
+from jaxlift.control.performance import figures  # noqa: E402
+from jaxlift.control.reference import thesis_reference  # noqa: E402
+from jaxlift.control.stability import stability_table  # noqa: E402
+from jaxlift.control.tune import tune_gains, tune_multistart  # noqa: E402
+from jaxlift.report.document import Report  # noqa: E402
+from jaxlift.report.tuning import plot_response  # noqa: E402
 
 SMALL = os.environ.get("JAXLIFT_NOTEBOOK_BUDGET") == "small"
 ROOT = pathlib.Path(os.environ.get("JAXLIFT_ROOT", pathlib.Path.cwd().parent))
@@ -94,7 +90,7 @@ print(f"model: {FIT / 'params.json'}; effects: {[e.name for e in effects] or 'no
 # ## The thesis gains on this model
 # The thesis PID (P = 20, I = 300, D = 2, N = 100) along the thesis-like reference
 # (fast and slow sections in every stage, both stage shifts). The figures of "good"
-# (CONTROL.md) -- tracking, oscillation in 0.5--10 Hz, offset after the shifts,
+# (docs/control.md) -- tracking, oscillation in 0.5--10 Hz, offset after the shifts,
 # actuator effort -- and the tuning cost built from them.
 
 # %%
@@ -119,7 +115,7 @@ for k, v in figures(sol).as_dict().items():
 # %% [markdown]
 # ## Nominal tuning
 # Levenberg--Marquardt on `log P, log I, log D, log N, log K_aw`. The cost of
-# CONTROL.md's figures is a sum of squares (each figure is an RMS or a mean), so it is
+# docs/control.md's figures is a sum of squares (each figure is an RMS or a mean), so it is
 # written as a residual vector (`tuning_residuals`: error samples, band-passed error,
 # duty rate, offsets, noise amplification); each evaluation is one simulation with the
 # Jacobian of those residuals by forward mode (`jax.jacfwd` through diffrax,

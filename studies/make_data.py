@@ -21,9 +21,9 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxlift as jl  # noqa: E402
-from jaxlift._sequences import THESIS_LIKE_SECTIONS, VALIDATION_SECTIONS, ramped_sequence  # noqa: E402
+from jaxlift.model.sequences import THESIS_LIKE_SECTIONS, VALIDATION_SECTIONS, ramped_sequence  # noqa: E402
 
-#: The hidden truth (MODEL.md names, SI units).
+#: The hidden truth (docs/model.md names, SI units).
 TRUTH = {
     "k1": 2.05,
     "k2": 1.95,

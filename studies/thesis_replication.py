@@ -30,12 +30,16 @@ import time
 import warnings
 
 import jaxlift as jl
-from jaxlift._closed_loop import Reference, SampledFilterWarning, simulate_closed_loop
-from jaxlift._closed_loop import thesis_reference as make_ref
-from jaxlift._control import PID, THESIS_PI, THESIS_PID, THESIS_PID_NOISE, ScheduledPID
-from jaxlift._performance import figures
-from jaxlift._report import Report
-from jaxlift._tuning import plot_response, stability_table, tune_gains, tuning_cost
+from jaxlift.control.closed_loop import SampledFilterWarning, simulate_closed_loop
+from jaxlift.control.controller import PID, THESIS_PI, THESIS_PID, THESIS_PID_NOISE, ScheduledPID
+from jaxlift.control.cost import tuning_cost
+from jaxlift.control.performance import figures
+from jaxlift.control.reference import Reference
+from jaxlift.control.reference import thesis_reference as make_ref
+from jaxlift.control.stability import stability_table
+from jaxlift.control.tune import tune_gains
+from jaxlift.report.document import Report
+from jaxlift.report.tuning import plot_response
 
 FIG_KEYS = [
     "tracking_rms_mmps",
@@ -79,9 +83,9 @@ def main(argv=None) -> int:
     rep = Report("Thesis replication: the lift controller (figures 3.9-3.14)")
     rep.text(
         f"Model: `{args.params}` (effects: {', '.join(names)}). Reference: the thesis-like "
-        "sequence of CONTROL.md (110 s, fast 0.09 m/s and slow 0.025 m/s sections in every "
+        "sequence of docs/control.md (110 s, fast 0.09 m/s and slow 0.025 m/s sections in every "
         "stage, both stage shifts crossed), 1000 kg unless said otherwise. Continuous "
-        "controller unless said otherwise. Figures of good as in `jaxlift._performance`."
+        "controller unless said otherwise. Figures of good as in `jaxlift.control.performance`."
     )
     ref = make_ref(1000.0)
     pid = PID().with_gains(THESIS_PID)
@@ -181,7 +185,7 @@ def main(argv=None) -> int:
         "3.10c appears here when the lift slows down at the shift: the valve shuts while the "
         "fork runs on (overdamped at 0.09 m/s) and the integral winds down; then K_aw = I/P "
         f"takes the offset from {rows[-2]['shift1_offset_mmps']:.2f} to "
-        f"{rows[-1]['shift1_offset_mmps']:.2f} mm/s. This agrees with CONTROL.md's "
+        f"{rows[-1]['shift1_offset_mmps']:.2f} mm/s. This agrees with docs/control.md's "
         "independent simulation (anti-windup mainly cures windup at u = 0 when slowing down)."
     )
 

@@ -1,6 +1,6 @@
-"""An independent NumPy/SciPy implementation of MODEL.md's lift, for cross-checks.
+"""An independent NumPy/SciPy implementation of docs/model.md's lift, for cross-checks.
 
-Written from ``/work/shared/MODEL.md`` (baseline equations, plus the ``stick_slip``
+Written from the specification (``docs/model.md``) (baseline equations, plus the ``stick_slip``
 and ``hose_compliance`` effects in their reference forms), *not* from jaxlift's code,
 so that agreement between the two is evidence that both implement the spec.
 
@@ -44,7 +44,7 @@ X_S1, X_S2, X_MAX = 1.5, 3.0, 4.5  # m: stage boundaries and full height
 W_BLEND = 5e-3  # m: width of the tanh stage blend
 V_EPS = 1e-3  # m/s: Coulomb smoothing speed
 
-#: MODEL.md's nominal parameters (names as in parameter files).
+#: docs/model.md's nominal parameters (names as in parameter files).
 NOMINAL: dict[str, float] = {
     "u_batt": 24.0,
     "k1": 1.9,
@@ -221,7 +221,7 @@ def _zoh(t: float, ts, pwm, load) -> tuple[float, float]:
 
 
 def rhs(t: float, y, params: Mapping[str, object], ts, pwm, load) -> np.ndarray:
-    """MODEL.md's right-hand side ``dy/dt`` at ``(t, y)`` with zero-order-held inputs.
+    """docs/model.md's right-hand side ``dy/dt`` at ``(t, y)`` with zero-order-held inputs.
 
     Convenience form (it resolves the parameters on every call); the integrator
     below binds them once with :func:`make_core`.
@@ -249,7 +249,7 @@ def static_pressure(params: Mapping[str, object], x: float, m_load: float) -> fl
 
 
 def initial_state(params: Mapping[str, object], x0: float, m_load0: float) -> np.ndarray:
-    """At rest at height ``x0``, pressure at static equilibrium (MODEL.md)."""
+    """At rest at height ``x0``, pressure at static equilibrium (docs/model.md)."""
     return np.array([float(x0), 0.0, static_pressure(params, float(x0), float(m_load0))])
 
 
@@ -271,7 +271,7 @@ def simulate_scipy(
     started from the state at the end of the previous one.
 
     Args:
-        params: ``{name: value}`` with MODEL.md's names (missing plant parameters take
+        params: ``{name: value}`` with docs/model.md's names (missing plant parameters take
             their nominal values; ``dFs``/``v_s`` and ``C_h`` switch the effects on).
         ts, pwm, load: sample times [s], duty cycle, load [kg] (zero-order hold).
         x0: initial height [m]; the fork starts at rest at static pressure.

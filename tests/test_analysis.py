@@ -1,4 +1,4 @@
-"""Tests of jaxlift._analysis on synthetic logs (numpy only, fast)."""
+"""Tests of jaxlift.analysis.regimes on synthetic logs (numpy only, fast)."""
 
 from __future__ import annotations
 
@@ -8,23 +8,23 @@ import os
 import numpy as np
 import pytest
 
-from jaxlift._analysis import (
-    REGIMES,
-    error_table,
+from jaxlift.analysis.oscillation import (
     log_speed_noise_floor,
     oscillation_metrics,
     oscillation_table,
+    zoom_windows,
+)
+from jaxlift.analysis.regimes import REGIMES, error_table, segment_log
+from jaxlift.analysis.residuals import residual_diagnostics
+from jaxlift.model.log import Log
+from jaxlift.report.analysis_plots import (
     plot_error_bars,
     plot_oscillations_vs_height,
     plot_residuals,
-    residual_diagnostics,
-    segment_log,
-    zoom_windows,
 )
-from jaxlift._log import Log
 
 DT = 0.01
-SIGMA_V = math.sqrt(1e-7 / DT)  # MODEL.md speed noise at 100 Hz [m/s]
+SIGMA_V = math.sqrt(1e-7 / DT)  # docs/model.md speed noise at 100 Hz [m/s]
 
 # (pwm level, duration [s], ramp into it [s], load [kg]) -- the test run
 RUN = [

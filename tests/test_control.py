@@ -17,13 +17,8 @@ import pytest
 from helpers import finite_difference_grad
 
 import jaxlift as jl
-from jaxlift._closed_loop import (
-    Reference,
-    SampledFilterWarning,
-    simulate_closed_loop,
-    thesis_reference,
-)
-from jaxlift._control import (
+from jaxlift.control.closed_loop import SampledFilterWarning, simulate_closed_loop
+from jaxlift.control.controller import (
     PID,
     THESIS_PI,
     THESIS_PID,
@@ -32,8 +27,10 @@ from jaxlift._control import (
     load_gains,
     save_gains,
 )
-from jaxlift._performance import bandpass, cost_from_figures, figures
-from jaxlift._tuning import GainSpace, closed_loop_eigenvalues
+from jaxlift.control.gains import GainSpace
+from jaxlift.control.performance import bandpass, cost_from_figures, figures
+from jaxlift.control.reference import Reference, thesis_reference
+from jaxlift.control.stability import closed_loop_eigenvalues
 
 # the baseline fit of the shipped logs (runs/fit_baseline), rounded
 CALIBRATED = {
@@ -111,7 +108,7 @@ def test_anti_windup_removes_offset_after_stage_shift():
     """A fast lift slowed down just before the first stage shift, 1500 kg: the valve
     shuts while the fork runs on and the integral winds down; without anti-windup the
     error 1.5-4.5 s after the shift is off by ~3 mm/s, with K_aw = I/P it is mostly
-    gone (CONTROL.md: anti-windup mainly cures windup at u = 0 when slowing down)."""
+    gone (docs/control.md: anti-windup mainly cures windup at u = 0 when slowing down)."""
     ref = Reference.from_sections(
         [(0.0, 1.0), (0.09, 3.0), (0.02, 8.0), (0.0, 2.0)], m_load=1500.0, x0=1.35, ramp_s=0.2
     )

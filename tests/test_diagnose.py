@@ -15,9 +15,14 @@ import numpy as np
 import pytest
 
 import jaxlift as jl
-from jaxlift._diagnose import diagnose, diagnose_iteratively, screen_effects, switch_parameter
-from jaxlift._fit import fit
-from jaxlift._sequences import ramped_sequence
+from jaxlift.calibrate.diagnose import (
+    diagnose,
+    diagnose_iteratively,
+    screen_effects,
+    switch_parameter,
+)
+from jaxlift.calibrate.fit import fit
+from jaxlift.model.sequences import ramped_sequence
 
 TRUTH = dict(
     k1=2.05, k2=1.95, k3=1.80, z1=-2.6, z2=-3.3, z3=-4.4,
@@ -158,7 +163,7 @@ def test_backward_check_drops_the_effect_that_only_mimicked_another():
     inertia hidden, a pure input delay (the signature closest to a motor lag) was
     added first and kept. With all three in the model, removing the delay costs
     (almost) nothing and removing leakage costs a lot: the delay is the one dropped."""
-    from jaxlift._diagnose import _backward_check
+    from jaxlift.calibrate.diagnose import backward_check as _backward_check
 
     hidden = {**HIDDEN["leakage"], **HIDDEN["motor_inertia"]}
     logs = _logs(hidden, effects=("leakage", "motor_inertia"))

@@ -1,6 +1,6 @@
-"""The candidate effects of MODEL.md: nesting, physical direction, registry.
+"""The candidate effects of docs/model.md: nesting, physical direction, registry.
 
-Expected values are computed here by hand from MODEL.md (nominal numbers copied from
+Expected values are computed here by hand from docs/model.md (nominal numbers copied from
 its table), never by the library's component laws.
 
 Every run in this file uses one input shape (5 s at 100 Hz: 0.5 s hold, a 0.5 s pwm
@@ -22,7 +22,7 @@ import jaxlift as jl
 RTOL = 1e-9
 ATOL = (1e-10, 1e-10, 1e-3)  # height m, speed m/s, pressure Pa
 
-# MODEL.md, by hand
+# docs/model.md, by hand
 G = 9.81
 P_ATM = 101325.0
 U_BATT = 24.0
@@ -40,7 +40,7 @@ TS = np.arange(0.0, 5.0, DT)
 T_STOP = 3.5  # valve closes
 N_SHIFT = 20  # samples in 0.2 s
 
-MODEL_MD_EFFECTS = [  # MODEL.md, "Candidate effects", in table order
+MODEL_MD_EFFECTS = [  # docs/model.md, "Candidate effects", in table order
     "stick_slip",
     "motor_inertia",
     "motor_droop",
@@ -50,7 +50,7 @@ MODEL_MD_EFFECTS = [  # MODEL.md, "Candidate effects", in table order
     "mast_compliance",
     "input_delay",
 ]
-MODEL_MD_PARAMS = {  # name -> (unit as in MODEL.md, nesting value or None)
+MODEL_MD_PARAMS = {  # name -> (unit as in docs/model.md, nesting value or None)
     "dFs": ("N", 0.0),
     "v_s": ("m/s", None),
     "tau_m": ("s", 0.0),
@@ -307,7 +307,7 @@ def test_hose_compliance_lowers_frequency(ring_plant, ring_baseline):
 
 def test_entrained_air_lowers_frequency(ring_plant, ring_baseline):
     """C = V (1/beta + alpha0 p_atm / p_abs^2); the library uses the absolute pressure
-    in Boyle's law (documented deviation from MODEL.md's gauge ``p``), so do we."""
+    in Boyle's law (documented deviation from docs/model.md's gauge ``p``), so do we."""
     alpha0 = AWAY["entrained_air"]["alpha0"]
     effects = jl.make_effects("entrained_air", AWAY["entrained_air"])
     sol = sim(ring_plant, effects, inputs(RING_LEVEL, RING_X0, RING_LOAD))
@@ -385,7 +385,7 @@ def test_effect_parameters_have_units_bounds_and_nesting():
         else:
             assert info.nesting == nesting, name
             assert info.nominal == nesting, f"{name}: default is not the nesting value"
-            assert info.lower == nesting, f"{name}: MODEL.md says {name} >= {nesting}"
+            assert info.lower == nesting, f"{name}: docs/model.md says {name} >= {nesting}"
     # the away-from-nesting values used in this file are physical
     for values in AWAY.values():
         for name, value in values.items():

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 import jaxlift as jl
-from jaxlift._fit import PARAMETER_SETS, fit, make_experiments, resolve_free
-from jaxlift._sequences import THESIS_LIKE_SECTIONS, ramped_sequence
+from jaxlift.calibrate.experiment import PARAMETER_SETS, make_experiments, resolve_free
+from jaxlift.calibrate.fit import fit
+from jaxlift.model.sequences import THESIS_LIKE_SECTIONS, ramped_sequence
 
 #: Truth away from the nominal values (no hidden effect).
 TRUTH = dict(

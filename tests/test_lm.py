@@ -1,12 +1,13 @@
-"""jaxlift's Levenberg--Marquardt driver (``jaxlift/_lm.py``) on problems whose optimum
+"""jaxlift's Levenberg--Marquardt driver (``jaxlift/calibrate/lm.py``) on problems whose optimum
 is known independently (linear least squares by ``numpy.linalg.lstsq``, a nonlinear fit
-by SciPy), and ``fit(method="lm")`` against ``fit(method="optimistix")``."""
+by SciPy), and ``fit(solver=LM())`` against ``fit(solver=OptimistixLM())``."""
 
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from jaxlift._lm import levenberg_marquardt
+from jaxlift.calibrate.lm import levenberg_marquardt
+from jaxlift.calibrate.solvers import OptimistixLM
 
 
 def _numeric(fn):
@@ -113,8 +114,8 @@ def test_lm_and_optimistix_reach_the_same_optimum():
     import jax
 
     import jaxlift as jl
-    from jaxlift._fit import fit
-    from jaxlift._sequences import ramped_sequence
+    from jaxlift.calibrate.fit import fit
+    from jaxlift.model.sequences import ramped_sequence
 
     truth = {"beta": 0.6e9, "d": 500.0}
     plant, _ = jl.with_params(jl.Plant(), (), truth)
@@ -124,7 +125,7 @@ def test_lm_and_optimistix_reach_the_same_optimum():
     log = jl.to_log(sol, inputs, jl.MeasurementModel(), jax.random.key(3), name="short")
     init = {"beta": 0.9e9, "d": 300.0}
     a = fit([log], free="beta,d", init=init, n_starts=1)
-    b = fit([log], free="beta,d", init=init, n_starts=1, method="optimistix")
+    b = fit([log], free="beta,d", init=init, n_starts=1, solver=OptimistixLM())
     assert a.converged and b.converged
     # the same optimum: fit()'s stopping rule (gtol = 0.01) promises a remaining step
     # below sqrt(0.01) = 0.1 standard errors and a chi2 above the optimum's by less than

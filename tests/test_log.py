@@ -1,4 +1,4 @@
-"""Tests of the log reader/writer (jaxlift._log); numpy only, no JAX."""
+"""Tests of the log reader/writer (jaxlift.model.log); numpy only, no JAX."""
 
 import pickle
 import re
@@ -7,14 +7,8 @@ import warnings
 import numpy as np
 import pytest
 
-from jaxlift._log import (
-    Log,
-    LogError,
-    UnusedColumnsWarning,
-    read_log,
-    validate_arrays,
-    write_log,
-)
+from jaxlift.model.log import Log, read_log, write_log
+from jaxlift.model.log_validation import LogError, UnusedColumnsWarning, validate_arrays
 
 HEADER = "time_s,pwm,height_m,load_kg,speed_mps,pressure_pa"
 N_ROWS = 10  # data rows of the template: lines 2..11

@@ -1,4 +1,4 @@
-"""Independent jobs on threads (jaxlift._parallel): order, errors, and fits that do not
+"""Independent jobs on threads (jaxlift.calibrate.parallel): order, errors, and fits that do not
 depend on the number of threads."""
 
 import threading
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import jaxlift as jl
-from jaxlift._fit import fit
-from jaxlift._parallel import thread_map
+from jaxlift.calibrate.fit import fit
+from jaxlift.calibrate.parallel import thread_map
 
 
 def test_thread_map_keeps_order_and_uses_threads():

@@ -1,6 +1,6 @@
-"""The baseline plant against hand calculations from MODEL.md.
+"""The baseline plant against hand calculations from docs/model.md.
 
-Every expected value here is computed in this file from MODEL.md's formulas and
+Every expected value here is computed in this file from docs/model.md's formulas and
 nominal numbers (the table "Nominal parameters"), never by calling the plant's own
 component laws: the simulation is the thing under test.
 
@@ -18,7 +18,7 @@ import pytest
 
 import jaxlift as jl
 
-# ---------------------------------------------------------------- MODEL.md, by hand
+# ---------------------------------------------------------------- docs/model.md, by hand
 G = 9.81  # m/s^2
 U_BATT = 24.0  # V
 K = (1.9, 1.8, 1.7)  # rad/(s V), stages 1..3
@@ -45,7 +45,7 @@ def stage(x: float) -> int:
 
 
 def volume(x: float) -> float:
-    """V(x) of MODEL.md item 5."""
+    """V(x) of docs/model.md item 5."""
     stroke = (
         AREA[0] * min(max(x, 0.0), X_S1)
         + AREA[1] * min(max(x - X_S1, 0.0), X_S2 - X_S1)
@@ -55,13 +55,13 @@ def volume(x: float) -> float:
 
 
 def static_pressure(x: float, m_load: float) -> float:
-    """p = M(x) g r / A(x) (MODEL.md, initial state)."""
+    """p = M(x) g r / A(x) (docs/model.md, initial state)."""
     i = stage(x)
     return (m_load + M_ST[i]) * G * R / AREA[i]
 
 
 def friction(v: float, cf_con: float = CF_CON, cf_out: float = CF_OUT) -> float:
-    """F_f(v) of MODEL.md item 6."""
+    """F_f(v) of docs/model.md item 6."""
     return cf_con * math.tanh(v / V_EPS) + cf_out * (CF_IN * v) ** 5
 
 
@@ -74,7 +74,7 @@ def lifting_speed(x: float, pwm: float) -> float:
 
 
 def lifting_pressure(x: float, m_load: float, v: float, d: float = D, **fric) -> float:
-    """Pressure at steady speed v: A p / r = M g + F_f(v) + d v (MODEL.md item 7)."""
+    """Pressure at steady speed v: A p / r = M g + F_f(v) + d v (docs/model.md item 7)."""
     i = stage(x)
     return ((m_load + M_ST[i]) * G + friction(v, **fric) + d * v) * R / AREA[i]
 
@@ -157,7 +157,7 @@ def test_hydraulic_ringdown_frequency(x0):
     i = stage(x0)
     k_oil = BETA * (AREA[i] / R) ** 2 / volume(x0)
     f_hand = math.sqrt(k_oil / (m1 + M_ST[i])) / (2.0 * math.pi)
-    assert 1.0 < f_hand < 6.0  # sanity of the hand numbers (MODEL.md: 1-3 Hz at ~1000 kg)
+    assert 1.0 < f_hand < 6.0  # sanity of the hand numbers (docs/model.md: 1-3 Hz at ~1000 kg)
     np.testing.assert_allclose(f_sim, f_hand, rtol=0.03)
     # a small signal: a step force dF on a spring k overshoots to twice the static
     # deflection dF / k (a millimetre or so)
@@ -183,7 +183,7 @@ def test_fork_stalls_at_stage_boundary():
     Stage 1 and stage 2 are each at steady speed r Q_i / A_i and at their lifting
     pressure (M_i g + F_f(v) + d v) r / A_i. At the boundary the fork needs a higher
     pressure (heavier stage, smaller area), so it slows while the pump builds the
-    pressure up. With MODEL.md's blend width w = 5 mm the stall is partial: quasi-
+    pressure up. With docs/model.md's blend width w = 5 mm the stall is partial: quasi-
     statically (p = p_static(x) along the blend) the speed at x_s1 is
     Q / (A/r + C dp_static/dx) ~ 0.6 of the stage-1 speed at these numbers; the fork's
     inertia makes the dip a bit deeper. We require < 0.7.

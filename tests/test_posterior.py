@@ -13,20 +13,15 @@ import numpy as np
 import pytest
 
 import jaxlift as jl
-from jaxlift._plant import P_ATM
-from jaxlift._posterior import (
-    AIR_THRESHOLD,
-    BETA_OIL,
-    _hdi,
-    air_content,
-    air_verdict,
-    make_log_prob,
-    posterior_draws,
-    posterior_samples,
-    prepare_posterior,
-    sample_posterior,
-)
-from jaxlift._sequences import ramped_sequence
+from jaxlift.model.constants import BETA_OIL, P_ATM
+from jaxlift.model.sequences import ramped_sequence
+from jaxlift.posterior.air import AIR_THRESHOLD, air_content, air_verdict
+from jaxlift.posterior.likelihood import make_log_prob
+from jaxlift.posterior.moves import MOVES
+from jaxlift.posterior.predictive import hdi as _hdi
+from jaxlift.posterior.predictive import posterior_draws
+from jaxlift.posterior.problem import prepare_posterior
+from jaxlift.posterior.sampler import posterior_samples, sample_posterior
 
 #: Truth away from the nominal values (as in test_fit), no hidden effect.
 TRUTH = dict(
@@ -40,7 +35,7 @@ WALKERS = 12  # one batch size (6) for every test: one compile of the log-probab
 
 
 def synthetic_logs(seeds=(3, 4), loads=(600.0, 1400.0)):
-    """Two short logs (50 Hz) simulated at TRUTH with MODEL.md's sensor noise."""
+    """Two short logs (50 Hz) simulated at TRUTH with docs/model.md's sensor noise."""
     plant, _ = jl.with_params(jl.Plant(), (), TRUTH)
     ts, pwm = ramped_sequence(SECTIONS, dt=0.02)
     logs = []
@@ -173,14 +168,14 @@ def test_resume_equals_uninterrupted_and_seeds(problem, log_prob, tmp_path):
 
 
 def test_move_choice_stored_and_kept_on_resume(problem, tmp_path):
-    with pytest.raises(ValueError, match="move must be one of"):
-        sample_posterior(problem, tmp_path / "x.h5", n_walkers=WALKERS, move="bogus")
+    with pytest.raises(TypeError, match="move must be a jaxlift move"):
+        sample_posterior(problem, tmp_path / "x.h5", n_walkers=WALKERS, move="kde")
     n = 20  # 10 per batch: enough points for the KDE of the complementary half in 5-D
     f = make_log_prob(problem)
 
     def run(path, max_steps, move, progress=False):
         return sample_posterior(
-            problem, path, n_walkers=n, max_steps=max_steps, seed=5, chunk=10, move=move,
+            problem, path, n_walkers=n, max_steps=max_steps, seed=5, chunk=10, move=MOVES[move](),
             log_prob=f, progress=progress,
         )  # fmt: skip
 
@@ -216,7 +211,7 @@ jax.config.update("jax_num_cpu_devices", 2)
 import numpy as np
 sys.path.insert(0, {tests!r})
 from test_posterior import WALKERS, synthetic_logs
-from jaxlift._posterior import make_log_prob, problem_from_settings, sample_posterior
+from jaxlift.posterior.problem import make_log_prob, problem_from_settings, sample_posterior
 problem = problem_from_settings(json.load(open({settings!r})), synthetic_logs())
 th = np.asarray(json.load(open({thetas!r})))
 f2 = make_log_prob(problem)
@@ -295,7 +290,7 @@ def test_truth_inside_90_percent_intervals(problem, log_prob, tmp_path):
 
 @pytest.mark.extended  # CI time; notebook 03 runs the same pipeline (run_posterior) in CI
 def test_cli_end_to_end(logs, tmp_path, capsys):
-    from jaxlift._cli import main
+    from jaxlift.cli.main import main
 
     paths = []
     for lg in logs[:1]:  # one log: half the compile time

@@ -1,6 +1,6 @@
-"""jaxlift against an independent SciPy implementation of MODEL.md on a thesis-like run.
+"""jaxlift against an independent SciPy implementation of docs/model.md on a thesis-like run.
 
-The reference (``tests/scipy_reference.py``) is written from MODEL.md alone, plain
+The reference (``tests/scipy_reference.py``) is written from docs/model.md alone, plain
 floats, integrated piecewise between input jumps with LSODA at tight tolerances.
 jaxlift must reproduce it over a whole 130 s test run that passes both stage shifts:
 

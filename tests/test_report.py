@@ -1,4 +1,4 @@
-"""Tests of the report builder jaxlift._report."""
+"""Tests of the report builder jaxlift.report.document."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from jaxlift._report import Report, format_value, markdown_inline_to_html
+from jaxlift.report.document import Report, format_value, markdown_inline_to_html
 
 ROWS = [
     {"group": "all", "n": 12901, "rms_speed_mmps": 3.14159, "bias_speed_mmps": -0.0123},

@@ -1,4 +1,4 @@
-"""``JumpStepSizeController`` (jaxlift._stepping) against diffrax's own
+"""``JumpStepSizeController`` (jaxlift.model.stepping) against diffrax's own
 ``ClipStepSizeController(..., jump_ts=...)``: same steps, same trajectory, same
 derivatives, the jump times hit, under ``vmap`` and ``jacfwd`` too.
 
@@ -16,8 +16,9 @@ import numpy as np
 import pytest
 
 import jaxlift as jl
-from jaxlift import _simulate
-from jaxlift._stepping import JumpStepSizeController, StabilityLimitedController
+from jaxlift.model.simulate import DEFAULT_ATOL, DTMAX, error_norm
+from jaxlift.model.stepping import JumpStepSizeController, StabilityLimitedController
+from jaxlift.model.vector_field import initial_state, lift_vector_field
 
 FS = 100.0
 TS = np.arange(0.0, 6.0 + 0.5 / FS, 1.0 / FS)
@@ -31,12 +32,10 @@ RTOL = 1e-6
 
 def _pid(effects=(), rtol=RTOL):
     scales = [jnp.asarray(e.state_scales, dtype=jnp.float64) for e in effects]
-    atol = jnp.concatenate([jnp.asarray(_simulate.DEFAULT_ATOL), *scales]) * (rtol / RTOL)
-    pid = diffrax.PIDController(
-        rtol=rtol, atol=atol, dtmax=_simulate.DTMAX, norm=_simulate._error_norm
-    )
+    atol = jnp.concatenate([jnp.asarray(DEFAULT_ATOL), *scales]) * (rtol / RTOL)
+    pid = diffrax.PIDController(rtol=rtol, atol=atol, dtmax=DTMAX, norm=error_norm)
     # as in jl.simulate: the stability limit inside, the jump handling outside
-    return StabilityLimitedController(pid, _simulate._vector_field, atol)
+    return StabilityLimitedController(pid, lift_vector_field, atol)
 
 
 def _controller(kind, jump_ts, effects=(), rtol=RTOL):
@@ -50,12 +49,12 @@ def _solve(kind, plant, effects, inputs, jump_ts, steps=False, adjoint=None, rto
     """The lift as ``jl.simulate`` solves it, with the step-size controller chosen."""
     saveat = diffrax.SaveAt(steps=True) if steps else diffrax.SaveAt(ts=inputs.ts)
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(_simulate._vector_field),
+        diffrax.ODETerm(lift_vector_field),
         diffrax.Tsit5(),
         t0=inputs.ts[0],
         t1=inputs.ts[-1],
         dt0=None,
-        y0=_simulate.initial_state(plant, effects, inputs),
+        y0=initial_state(plant, effects, inputs),
         args=(plant, effects, inputs),
         saveat=saveat,
         stepsize_controller=_controller(kind, jump_ts, effects, rtol),
@@ -128,8 +127,8 @@ def test_unreached_and_repeated_jump_times_change_nothing():
 
 def test_controller_state_does_not_carry_the_jump_times():
     controller = JumpStepSizeController(_pid(), INPUTS.jump_ts).wrap(jnp.asarray(1))
-    y0 = _simulate.initial_state(jl.Plant(), (), INPUTS)
-    term = diffrax.ODETerm(_simulate._vector_field)
+    y0 = initial_state(jl.Plant(), (), INPUTS)
+    term = diffrax.ODETerm(lift_vector_field)
     _, state = controller.init(
         term, 0.0, TS[-1], y0, None, (jl.Plant(), (), INPUTS), diffrax.Tsit5().func, 5
     )
@@ -269,7 +268,7 @@ def _relax(theta, limited: bool):
     def vf(t, y, args):
         return LAM * (args - y)
 
-    pid = diffrax.PIDController(rtol=1e-6, atol=1e-8, dtmax=_simulate.DTMAX)
+    pid = diffrax.PIDController(rtol=1e-6, atol=1e-8, dtmax=DTMAX)
     controller = StabilityLimitedController(pid, vf, jnp.ones(1)) if limited else pid
     ts = jnp.linspace(0.0, 2.0, 21)
     sol = diffrax.diffeqsolve(

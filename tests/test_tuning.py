@@ -17,25 +17,23 @@ import numpy as np
 import pytest
 
 import jaxlift as jl
-from jaxlift._closed_loop import Reference, simulate_closed_loop
-from jaxlift._control import PID, THESIS_PID, ScheduledPID, load_gains
-from jaxlift._performance import noise_amplification
-from jaxlift._tuning import (
+from jaxlift.control.closed_loop import simulate_closed_loop
+from jaxlift.control.controller import PID, THESIS_PID, ScheduledPID, load_gains
+from jaxlift.control.cost import (
     FAILED_COST,
-    GainSpace,
-    batch_models,
     closed_loop_costs,
     draw_weights,
-    evaluate_draws,
-    parameter_draws,
     robust_objective,
     stack_references,
     stage_noise_amplification,
-    tune_gains,
-    tune_multistart,
     tuning_cost,
     tuning_residuals,
 )
+from jaxlift.control.draws import batch_models, evaluate_draws, parameter_draws
+from jaxlift.control.gains import GainSpace
+from jaxlift.control.performance import noise_amplification
+from jaxlift.control.reference import Reference
+from jaxlift.control.tune import tune_gains, tune_multistart
 
 CALIBRATED = {"beta": 4.0e8, "cf_con": 1.0, "cf_in": 13.5, "cf_out": 770.0, "d": 560.0}
 PLANT = jl.with_params(jl.Plant(), (), CALIBRATED)[0]
@@ -275,7 +273,7 @@ def test_cli_tune_and_control_simulate(tmp_path, fit_dir, posterior_dir):
     """`jaxlift tune --posterior DIR` (no --params: the posterior's calibrated model),
     robust tuning over two posterior draws, report over two more; then `control
     simulate` with the written gains."""
-    from jaxlift._cli import main
+    from jaxlift.cli.main import main
 
     out = tmp_path / "tune"
     rc = main(

@@ -1,0 +1,178 @@
+"""Command-line interface: ``jaxlift COMMAND ...`` (see ``jaxlift --help``)."""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+from importlib.metadata import version
+
+from .common import read_logs, setup_jax
+
+
+def cmd_simulate(args) -> int:
+    import jaxlift as jl
+    from jaxlift.workflows.simulate import run_simulate
+
+    (log,) = read_logs([args.log])
+    plant, effects = jl.load_model(args.params, args.effects)
+    out = pathlib.Path(args.out)
+    _, rms = run_simulate(log, plant, effects, out)
+    print(f"wrote {out} ({log.n} samples) and {out.with_suffix('.png')}")
+    print(f"effects: {[e.name for e in effects] or 'none (baseline)'}")
+    print(f"RMS height error against the log: {rms['height_m'] * 1e3:.2f} mm")
+    if "speed_mps" in rms:
+        print(f"RMS speed error against the log: {rms['speed_mps'] * 1e3:.2f} mm/s")
+    return 0
+
+
+def cmd_fit(args) -> int:
+    import jaxlift as jl
+    from jaxlift.workflows.fit import run_fit
+
+    fit_logs = read_logs(args.logs)
+    val_logs = read_logs(args.validate or [])
+    init = None
+    if args.params:
+        init = jl.load_params_json(args.params, jl.all_param_infos("all"))
+    effects = [e for e in (args.effects or "").split(",") if e.strip()]
+    print(
+        f"fitting {len(fit_logs)} log(s) ({', '.join(lg.name for lg in fit_logs)}), "
+        f"held out: {', '.join(lg.name for lg in val_logs) or 'none'}; "
+        f"effects: {', '.join(effects) or 'none (baseline)'}; free: {args.free}",
+        flush=True,
+    )
+    result, metrics = run_fit(
+        fit_logs,
+        val_logs,
+        effects=effects,
+        free=args.free,
+        init=init,
+        staged=not args.joint,
+        n_starts=args.starts,
+        seed=args.seed,
+        out_dir=args.out,
+        progress=lambda line: print(line, flush=True),
+    )
+    print(f"converged: {result.converged}")
+    for name, lm in metrics["logs"].items():
+        b, a = lm["before"], lm["after"]
+        print(
+            f"  {name:24s} {lm['role']:9s} chi2/N {b['chi2_per_sample']:10.3g} -> "
+            f"{a['chi2_per_sample']:8.3g}   RMS speed {b.get('rms_speed_mmps', float('nan')):6.2f}"
+            f" -> {a.get('rms_speed_mmps', float('nan')):6.2f} mm/s"
+        )
+    if result.undetermined:
+        print(f"not determined by these data: {', '.join(result.undetermined)}")
+    print(f"wrote {args.out}/params.json, metrics.json, report.md, report.html, figures/")
+    return 0 if result.converged else 1
+
+
+def cmd_diagnose(args) -> int:
+    from jaxlift.workflows.diagnose import run_diagnose
+
+    logs = read_logs(args.logs)
+    val = read_logs(args.validate or [])
+    print(
+        f"diagnosing {len(logs)} log(s); held out: {', '.join(lg.name for lg in val) or 'none'}",
+        flush=True,
+    )
+    steps = run_diagnose(
+        logs,
+        val,
+        out_dir=args.out,
+        iterate=not args.once,
+        n_starts=args.starts,
+        seed=args.seed,
+        progress=lambda line: print(line, flush=True),
+    )
+    found = [d.verdict for d in steps if d.verdict != "none"]
+    print(f"verdict: {steps[0].verdict}")
+    if len(steps) > 1:
+        print(f"missing effects, in order: {', '.join(found) or 'none'}")
+    print(f"wrote {args.out}/diagnosis.json, report.md, report.html, figures/")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from jaxlift.model.effects import EFFECTS
+
+    parser = argparse.ArgumentParser(
+        prog="jaxlift",
+        description="Differentiable digital twin of an AGV's hydraulic lift.",
+    )
+    parser.add_argument("--version", action="version", version=f"jaxlift {version('jaxlift')}")
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("simulate", help="simulate a log's input and compare with the log")
+    p.add_argument("log", help="test-run log (CSV, see docs/data.md)")
+    p.add_argument("--params", help="parameter file (JSON, docs/model.md names); default nominal")
+    p.add_argument(
+        "--effects",
+        default=None,
+        help=f"comma-separated effects to switch on ({', '.join(EFFECTS)}); default: "
+        "those whose parameters appear in --params",
+    )
+    p.add_argument("--out", required=True, help="output CSV (a PNG plot is written beside it)")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser(
+        "fit",
+        help="calibrate the model on logs (Levenberg-Marquardt) and report where it fails",
+    )
+    p.add_argument("logs", nargs="+", help="logs to fit (CSV)")
+    p.add_argument("--validate", nargs="*", default=[], help="held-out logs (not fitted)")
+    p.add_argument("--effects", default="", help="effects to add to the baseline (a,b)")
+    p.add_argument(
+        "--free",
+        default="all",
+        help="free parameters: sets motor, dynamic, effects, all, and/or names (a,b)",
+    )
+    p.add_argument("--params", help="starting values (JSON, docs/model.md names); default nominal")
+    p.add_argument("--starts", type=int, default=4, help="starting points per stage")
+    p.add_argument("--seed", type=int, default=0, help="seed of the starting points")
+    p.add_argument(
+        "--joint", action="store_true", help="fit all free parameters at once (default: staged)"
+    )
+    p.add_argument("--out", required=True, help="output directory")
+    p.set_defaults(func=cmd_fit)
+
+    p = sub.add_parser(
+        "diagnose",
+        help="fit the baseline, test every candidate effect, name the missing one(s)",
+    )
+    p.add_argument("logs", nargs="+", help="logs to fit (CSV)")
+    p.add_argument("--validate", nargs="*", default=[], help="held-out logs (not fitted)")
+    p.add_argument(
+        "--once",
+        action="store_true",
+        help="one diagnosis only (default: add the winner and "
+        "diagnose again until none is missing)",
+    )
+    p.add_argument("--starts", type=int, default=2, help="starting points of each fit")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="output directory")
+    p.set_defaults(func=cmd_diagnose)
+
+    from jaxlift.cli.control import add_parsers as add_control_parsers
+    from jaxlift.cli.posterior import add_parsers as add_posterior_parsers
+
+    add_posterior_parsers(sub)  # jaxlift posterior
+    add_control_parsers(sub)  # jaxlift tune, jaxlift control simulate
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    setup_jax()
+    import jaxlift as jl
+
+    try:
+        return args.func(args)
+    except (jl.LogError, jl.ParameterError, jl.SimulationError, ValueError) as err:
+        print(f"jaxlift {args.command}: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

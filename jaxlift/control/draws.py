@@ -1,0 +1,175 @@
+"""Parameter draws for robust tuning and its evaluation: from a posterior directory or
+from a fit's covariance, as batches of plants and effects.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from collections.abc import Mapping, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..model.build import all_param_infos, with_params
+from ..model.effects import EFFECTS, AbstractEffect
+from ..model.params import ParameterError, from_unconstrained, load_params_json, to_unconstrained
+from ..model.plant import Plant
+from ..model.vector_field import (
+    canonical_effects,
+)
+from ..posterior.predictive import posterior_draws
+from .controller import AbstractController
+from .cost import closed_loop_costs, stack_references
+from .performance import (
+    CostWeights,
+    Figures,
+)
+from .reference import Reference
+
+
+# ------------------------------------------------------------------ parameter draws
+@dataclasses.dataclass
+class DrawSet:
+    """Parameter draws of the plant (+ effects).
+
+    Attributes:
+        source: where they came from (posterior, or least-squares covariance), as text.
+        effects: effect names of the model.
+        draws: one ``{name: value}`` per draw (physical units, docs/model.md names).
+    """
+
+    source: str
+    effects: list[str]
+    draws: list[dict[str, float]]
+
+    def split(self, n_first: int) -> tuple[DrawSet, DrawSet]:
+        """The first ``n_first`` draws and the rest (e.g. tuning / held-out)."""
+        return (
+            DrawSet(self.source, self.effects, self.draws[:n_first]),
+            DrawSet(self.source, self.effects, self.draws[n_first:]),
+        )
+
+
+def parameter_draws(
+    n: int,
+    seed: int,
+    *,
+    posterior_dir: str | os.PathLike | None = None,
+    fit_dir: str | os.PathLike | None = None,
+) -> DrawSet:
+    """``n`` draws of the model parameters from ``seed``.
+
+    From the posterior (``jaxlift.posterior.predictive.posterior_draws(posterior_dir, n, seed)``)
+    when ``posterior_dir`` is given and that works; else from the least-squares fit in
+    ``fit_dir`` (``params.json`` and ``metrics.json``: standard errors and, where
+    present, the correlation matrix; independent otherwise): a Gaussian in the
+    unconstrained coordinate of each parameter (log/logit, delta method), except for a
+    parameter whose standard error is large against its distance to the bound (>
+    half of it), which is drawn in physical units and clipped to its bounds. Unfitted
+    parameters are fixed. ``source`` says which was used."""
+    notes = []
+    if posterior_dir is not None:
+        try:
+            eff, draws = posterior_draws(posterior_dir, n, seed)
+            return DrawSet(f"posterior samples from {posterior_dir}", list(eff), list(draws))
+        except (ImportError, FileNotFoundError, OSError, ValueError) as err:
+            notes.append(f"posterior in {posterior_dir} not usable ({err})")
+    if fit_dir is None:
+        raise ParameterError(
+            "no parameter draws: give a posterior directory or a fit directory "
+            "(params.json + metrics.json from `jaxlift fit`)"
+        )
+    fit_dir = os.fspath(fit_dir)
+    infos = all_param_infos("all")
+
+    values = load_params_json(os.path.join(fit_dir, "params.json"), infos)
+    mpath = os.path.join(fit_dir, "metrics.json")
+    try:
+        with open(mpath, encoding="utf-8") as fh:
+            metrics = json.load(fh)
+    except FileNotFoundError:
+        raise ParameterError(f"{mpath}: not found (needed for the fit covariance)") from None
+    se = {k: float(v) for k, v in (metrics.get("stderr") or {}).items() if v is not None}
+    se = {k: v for k, v in se.items() if k in values and math.isfinite(v) and v > 0}
+    names = sorted(se)
+    corr = np.eye(len(names))
+    if "correlation" in metrics:
+        cn = metrics["correlation"]["names"]
+        cm = np.asarray(metrics["correlation"]["matrix"], dtype=float)
+        idx = {k: i for i, k in enumerate(cn)}
+        for a, na in enumerate(names):
+            for b, nb in enumerate(names):
+                if na in idx and nb in idx:
+                    corr[a, b] = cm[idx[na], idx[nb]]
+    else:
+        notes.append("metrics.json has no correlation matrix: parameters drawn independently")
+    mean, sd, logspace = [], [], []
+    for k in names:
+        info, v = infos[k], values[k]
+        theta = float(to_unconstrained(info, v))
+        eps = 1e-6 * max(abs(v), 1e-12)
+        slope = (
+            float(to_unconstrained(info, v + eps)) - float(to_unconstrained(info, v - eps))
+        ) / (2 * eps)
+        dist = min(v - info.lower, info.upper - v)
+        use_log = info.transform != "identity" and se[k] < 0.5 * dist and math.isfinite(slope)
+        logspace.append(use_log)
+        mean.append(theta if use_log else v)
+        sd.append(se[k] * abs(slope) if use_log else se[k])
+    cov = np.outer(sd, sd) * corr
+    cov = 0.5 * (cov + cov.T) + 1e-12 * np.diag(np.square(sd))
+    rng = np.random.default_rng(seed)
+    z = rng.multivariate_normal(np.asarray(mean), cov, size=n, method="eigh")
+    draws = []
+    for row in z:
+        d = dict(values)
+        for j, k in enumerate(names):
+            info = infos[k]
+            x = float(from_unconstrained(info, row[j])) if logspace[j] else float(row[j])
+            d[k] = float(np.clip(x, info.lower, info.upper))
+        draws.append(d)
+    effects = [e for e in metrics.get("effects", []) or []]
+    if not effects:
+        effects = [n_ for n_, c in EFFECTS.items() if set(c.param_infos()) & set(values)]
+    notes.insert(0, f"least-squares covariance of the fit in {fit_dir} (no posterior)")
+    return DrawSet("; ".join(notes), list(effects), draws)
+
+
+def batch_models(
+    plant: Plant, effects: Sequence[AbstractEffect], draws: Sequence[Mapping[str, float]]
+) -> tuple[Plant, tuple[AbstractEffect, ...]]:
+    """Stack ``(plant, effects)`` with each draw's values (names the model does not
+    have, e.g. effect parameters when the effects are off, are ignored)."""
+    effects = canonical_effects(effects)
+    known = set(all_param_infos(effects))
+    models = [
+        with_params(plant, effects, {k: v for k, v in d.items() if k in known}) for d in draws
+    ]
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *models)
+
+
+def evaluate_draws(
+    controller: AbstractController,
+    plants: Plant,
+    effects: tuple[AbstractEffect, ...],
+    reference: Reference,
+    *,
+    weights: CostWeights | None = None,
+    **sim_kw,
+) -> tuple[np.ndarray, np.ndarray, Figures]:
+    """Costs, success flags and figures of one controller over stacked draws on one
+    reference (``vmap``)."""
+    c, ok, fig = closed_loop_costs(
+        controller,
+        plants,
+        effects,
+        stack_references([reference]),
+        batched_plants=True,
+        weights=weights,
+        **sim_kw,
+    )
+    return np.asarray(c[:, 0]), np.asarray(ok[:, 0]), jax.tree.map(lambda a: a[:, 0], fig)

@@ -1,0 +1,22 @@
+"""The constants shared across jaxlift, in one place (SI units).
+
+The physical numbers of the model and its sensors (see ``docs/model.md`` and
+``docs/control.md``). Everything a user may fit or change lives in parameters
+(:mod:`jaxlift.model.params`), not here; these are the fixed facts of the lift and
+the defaults of its measurement model.
+"""
+
+G = 9.81  # gravitational acceleration [m/s^2]
+P_ATM = 101325.0  # atmospheric pressure [Pa]
+BETA_OIL = 1.4e9  # bulk modulus of ideal, air-free oil [Pa]
+
+X_S1 = 1.5  # stage boundary 1 -> 2 [m]
+X_S2 = 3.0  # stage boundary 2 -> 3 [m]
+STAGE_BOUNDARIES_M: tuple[float, float] = (X_S1, X_S2)
+MAST_HEIGHT_M = 4.5  # full height, the top of stage 3 [m]
+
+SIGMA_HEIGHT_M = 0.5e-3  # white noise of the wire height sensor [m]
+SPEED_NOISE_POWER = 1e-7  # power of the band-limited speed-sensor noise [(m/s)^2 s]
+SIGMA_PRESSURE_PA = 5e4  # white noise of a pressure sensor, where a vehicle has one [Pa]
+SAMPLE_PERIOD_S = 0.01  # default logging / controller period, 100 Hz [s]
+OUTPUT_DT = SAMPLE_PERIOD_S  # output grid of closed-loop simulations [s]

@@ -1,0 +1,25 @@
+"""``hose_compliance``: hoses and seals stretch with pressure (thesis 3.2).
+
+``C = V / beta + C_h``: a compliance that does not grow with height, so the
+hydraulic frequency varies less with height. Nesting value ``C_h = 0``.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+from ..params import param
+from .base import AbstractStatelessEffect, Scalar, Signals
+
+
+class HoseCompliance(AbstractStatelessEffect):
+    """Constant extra hydraulic capacitance."""
+
+    C_h: Scalar = param(
+        0.0, "m^3/Pa", 0.0, 1e-9, "hose and seal compliance", nesting=0.0, scale=1e-12
+    )
+
+    name: ClassVar[str] = "hose_compliance"
+
+    def extra_capacitance(self, plant, z, sig: Signals, volume):
+        return self.C_h

@@ -1,0 +1,25 @@
+"""``leakage``: internal leakage past piston seals and pump (thesis 4.1.3).
+
+The numerator of ``dp/dt`` gains ``-C_L p``: the fork sinks while the valve is
+closed. Nesting value ``C_L = 0``.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+from ..params import param
+from .base import AbstractStatelessEffect, Scalar, Signals
+
+
+class Leakage(AbstractStatelessEffect):
+    """Laminar leakage flow proportional to pressure."""
+
+    C_L: Scalar = param(
+        0.0, "m^3/(s Pa)", 0.0, 1e-9, "laminar leakage coefficient", nesting=0.0, scale=1e-13
+    )
+
+    name: ClassVar[str] = "leakage"
+
+    def extra_flow(self, plant, z, sig: Signals):
+        return -self.C_L * sig.p

@@ -1,0 +1,331 @@
+"""Measurement logs of the lift: reading, checking and writing one test run.
+
+Format
+------
+One test run of one vehicle is one CSV file (see ``docs/data.md``):
+
+* UTF-8 text (a leading byte-order mark, as some spreadsheet programs write it, is accepted),
+  comma-separated, ``\\n`` or ``\\r\\n`` line ends, standard CSV quoting;
+* one header row naming the columns, then one row per sample; blank lines are accepted only
+  at the end of the file;
+* SI units, the unit is part of the column name:
+
+  ===============  ========  ====================================================================
+  column           required  meaning
+  ===============  ========  ====================================================================
+  ``time_s``       yes       sample time [s]; strictly increasing and uniformly sampled: every
+                             step is within 1 % of the median step (the sample period)
+  ``pwm``          yes       duty cycle commanded to the voltage unit [-], in [0, 1]
+                             (0 = valve closed)
+  ``height_m``     yes       fork height from the wire sensor [m], in [-0.01, 4.6]: the mast is
+                             4.5 m high; down to -0.01 m is sensor noise at the bottom
+  ``load_kg``      yes       mass on the forks [kg], >= 0; may change within a run (a pallet
+                             picked up)
+  ``speed_mps``    no        fork speed as logged by the vehicle [m/s], any finite value
+  ``pressure_pa``  no        line pressure [Pa], absolute, >= 0
+  ===============  ========  ====================================================================
+
+* the columns may come in any order; names are case-sensitive, surrounding spaces are ignored;
+* every value of a known column is a decimal number (``1``, ``-0.5``, ``.25``, ``1e-3``;
+  surrounding spaces are ignored).  Empty fields, text, ``nan`` and ``inf`` are errors;
+* any other column is kept in :attr:`Log.extra` but not used (as float64 when every value is a
+  number, else as strings), and one :class:`UnusedColumnsWarning` names all of them.
+
+What is not a valid log raises :class:`LogError`, whose message names the file, the line
+(1-based, the header is line 1) and the column and says what was expected, e.g.::
+
+    data/run.csv, line 17, column 'pwm': expected a value in [0, 1] (duty cycle), got 1.3
+
+Nothing is dropped, repaired or guessed.  When a file has several problems, the one on the
+earliest line is reported.  A :class:`Log` built in code is checked the same way; there the
+"line" of sample ``i`` is ``i + 2`` (where it would be in a written file) and the message also
+gives the array index.
+"""
+
+import codecs
+import csv
+import dataclasses
+import io
+import os
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .log_validation import (
+    KNOWN_COLUMNS,
+    MIN_SAMPLES,
+    NON_FINITE,
+    NOT_DECIMAL_CHAR,
+    NUMBER,
+    REQUIRED_COLUMNS,
+    LogError,
+    UnusedColumnsWarning,
+    check_extra,
+    validate_arrays,
+)
+
+# A decimal number, as written by any logger; deliberately stricter than float() (which also
+# takes "1_000", "nan", "inf", "infinity").
+
+
+@dataclasses.dataclass(frozen=True, eq=False, repr=False)
+class Log:
+    """One test run: samples of the lift, as read from a CSV log (see the module docstring).
+
+    All arrays are read-only float64 copies of shape ``(n,)``; building a ``Log`` checks them
+    like :func:`read_log` checks a file (raising :class:`LogError`).
+    """
+
+    time_s: np.ndarray  # sample time [s]
+    pwm: np.ndarray  # commanded duty cycle [-], in [0, 1]
+    height_m: np.ndarray  # fork height [m]
+    load_kg: np.ndarray  # mass on the forks [kg]
+    speed_mps: np.ndarray | None = None  # logged fork speed [m/s]
+    pressure_pa: np.ndarray | None = None  # absolute line pressure [Pa]
+    extra: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # unused columns
+    name: str = "log"  # stem of the file name, for reports
+    path: str | None = None
+
+    def __post_init__(self) -> None:
+        path = None if self.path is None else os.fsdecode(self.path)
+        object.__setattr__(self, "path", path)
+        given = {c: getattr(self, c) for c in KNOWN_COLUMNS}
+        arrays = validate_arrays(given, path=path, name=self.name)
+        for c in KNOWN_COLUMNS:
+            object.__setattr__(self, c, arrays.get(c))
+        extra = check_extra(self.extra, self.n, path=path, name=self.name)
+        object.__setattr__(self, "extra", extra)
+
+    @property
+    def n(self) -> int:
+        """Number of samples."""
+        return int(self.time_s.shape[0])
+
+    @property
+    def sample_period(self) -> float:
+        """Median time step [s]."""
+        return float(np.median(np.diff(self.time_s)))
+
+    @property
+    def duration(self) -> float:
+        """Time from the first to the last sample [s]."""
+        return float(self.time_s[-1] - self.time_s[0])
+
+    @property
+    def columns(self) -> tuple[str, ...]:
+        """Names of the columns present, in the order :func:`write_log` writes them."""
+        known = tuple(c for c in KNOWN_COLUMNS if getattr(self, c) is not None)
+        return known + tuple(self.extra)
+
+    def column(self, name: str) -> np.ndarray:
+        """The array of column ``name`` (known or extra); KeyError if absent."""
+        if name in KNOWN_COLUMNS and getattr(self, name) is not None:
+            return getattr(self, name)
+        if name in self.extra:
+            return self.extra[name]
+        raise KeyError(name)
+
+    def __repr__(self) -> str:
+        return (
+            f"Log(name={self.name!r}, n={self.n}, sample_period={self.sample_period:.6g} s, "
+            f"duration={self.duration:.6g} s, columns={list(self.columns)})"
+        )
+
+
+def _parse_numbers(tokens: Sequence[str]) -> np.ndarray:
+    """Decimal numbers -> float64; anything else (text, empty, nan, inf) -> NaN."""
+    if not NOT_DECIMAL_CHAR.search("".join(tokens)):
+        # Fast path: on these characters float() takes exactly the decimal numbers (no "nan",
+        # "inf" or "1_0" can be spelt), so it may do the checking.
+        try:
+            return np.array([float(tok) for tok in tokens], dtype=np.float64)
+        except ValueError:  # "", "1e", "1.2.3", ...: find them one by one
+            pass
+    out = np.empty(len(tokens), dtype=np.float64)
+    for i, tok in enumerate(tokens):
+        s = tok.strip()
+        out[i] = float(s) if NUMBER.fullmatch(s) else np.nan
+    return out
+
+
+def _parse_extra(tokens: Sequence[str]) -> np.ndarray:
+    """An unused column: float64 when every value is a number (nan/inf included), else str."""
+    values = []
+    for tok in tokens:
+        s = tok.strip()
+        if not (NUMBER.fullmatch(s) or NON_FINITE.fullmatch(s)):
+            return np.array(list(tokens), dtype=str)
+        values.append(float(s))
+    return np.array(values, dtype=np.float64)
+
+
+def read_log(path: str | os.PathLike[str]) -> Log:
+    """Read and check one log file (format: see the module docstring).
+
+    Returns a :class:`Log` named after the file's stem.  Raises :class:`LogError` for anything
+    that is not a valid log, and warns once (:class:`UnusedColumnsWarning`) about columns that
+    are kept but not used.
+    """
+    p = os.fsdecode(path)
+    name = Path(p).stem
+
+    try:
+        with open(p, "rb") as f:
+            data = f.read()
+    except OSError as e:
+        raise LogError(
+            "a readable log file", path=p, got=f"{type(e).__name__}: {e.strerror or e}"
+        ) from None
+
+    skip = len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0
+    try:
+        text = data[skip:].decode("utf-8")
+    except UnicodeDecodeError as e:
+        off = skip + e.start
+        raise LogError(
+            "UTF-8 text",
+            path=p,
+            row=data.count(b"\n", 0, off) + 1,
+            got=f"the byte 0x{data[off]:02x} at byte offset {off} (save the file as UTF-8)",
+        ) from None
+
+    required = ", ".join(REQUIRED_COLUMNS)
+    if not text.strip():
+        raise LogError(
+            f"a header row naming the columns ({required}, ...)", path=p, got="an empty file"
+        )
+
+    reader = csv.reader(io.StringIO(text, newline=""), strict=True)
+    rows: list[list[str]] = []
+    starts: list[int] = []
+    start = 1
+    try:
+        while True:
+            start = reader.line_num + 1
+            try:
+                row = next(reader)
+            except StopIteration:
+                break
+            rows.append(row)
+            starts.append(start)
+    except csv.Error as e:
+        raise LogError("well-formed CSV", path=p, row=start, got=str(e)) from None
+
+    header = rows[0]
+    if not header:
+        raise LogError(
+            f"a header row naming the columns ({required}, ...)", path=p, row=1, got="a blank line"
+        )
+    names = [h.strip() for h in header]
+    for j, c in enumerate(names):
+        if not c:
+            raise LogError(
+                "a name for every column", path=p, row=1, got=f"an empty name for field {j + 1}"
+            )
+    first_field: dict[str, int] = {}
+    for j, c in enumerate(names):
+        if c in first_field:
+            raise LogError(
+                "unique column names",
+                path=p,
+                row=1,
+                column=c,
+                got=f"{c!r} in fields {first_field[c] + 1} and {j + 1}",
+            )
+        first_field[c] = j
+    for c in REQUIRED_COLUMNS:
+        if c not in first_field:
+            raise LogError(
+                f"a column named {c!r} (required: {required})",
+                path=p,
+                row=1,
+                column=c,
+                got="columns " + ", ".join(repr(x) for x in names),
+            )
+
+    body, lines = rows[1:], starts[1:]
+    while body and not body[-1]:  # blank lines at the end of the file
+        body.pop()
+        lines.pop()
+    for row, line in zip(body, lines, strict=True):
+        if len(row) != len(names):
+            raise LogError(
+                f"{len(names)} fields, one per column of the header",
+                path=p,
+                row=line,
+                got="a blank line" if not row else f"{len(row)} fields",
+            )
+    if len(body) < MIN_SAMPLES:
+        raise LogError(
+            f"at least {MIN_SAMPLES} data rows",
+            path=p,
+            row=(lines[-1] if lines else starts[0]) + 1,
+            got=f"{len(body)}",
+        )
+
+    fields = list(zip(*body, strict=True))
+    raw = {c: fields[j] for c, j in first_field.items() if c in KNOWN_COLUMNS}
+    known = {c: _parse_numbers(tokens) for c, tokens in raw.items()}
+    arrays = validate_arrays(known, path=p, name=name, lines=lines, raw=raw)
+    extra = {c: _parse_extra(fields[j]) for c, j in first_field.items() if c not in KNOWN_COLUMNS}
+    if extra:
+        warnings.warn(
+            f"{p}: column(s) {', '.join(repr(c) for c in extra)} not used (kept in Log.extra)",
+            UnusedColumnsWarning,
+            stacklevel=2,
+        )
+    return Log(**arrays, extra=extra, name=name, path=p)
+
+
+def write_log(path: str | os.PathLike[str], log: Log, *, float_format: str = "%.9g") -> None:
+    """Write ``log`` as a CSV file that :func:`read_log` reads back.
+
+    Columns: the required ones, then ``speed_mps`` and ``pressure_pa`` where present, then the
+    extra columns in their order.  Numbers are written with ``float_format`` (``%``-style),
+    strings as they are; UTF-8 without byte-order mark, ``\\n`` line ends.  The same log gives
+    the same bytes.  If the numbers, rounded to ``float_format``, would no longer make a valid
+    log (e.g. time steps collapsing), :class:`LogError` is raised and nothing is written.
+    """
+    p = os.fsdecode(path)
+    try:
+        float_format % 1.0
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"float_format {float_format!r} cannot format a number: {e}") from None
+
+    names = log.columns
+    text: list[list[str]] = []
+    for c in names:
+        arr = log.column(c)
+        if arr.dtype.kind in "biuf":
+            text.append([float_format % v for v in arr.tolist()])
+        else:
+            text.append([str(v) for v in arr.tolist()])
+
+    # What read_log will see: check it now, so a written log always reads back.
+    try:
+        reread = {
+            c: _parse_numbers(col) for c, col in zip(names, text, strict=True) if c in KNOWN_COLUMNS
+        }
+        validate_arrays(
+            reread,
+            path=p,
+            name=log.name,
+            raw={c: col for c, col in zip(names, text, strict=True) if c in KNOWN_COLUMNS},
+        )
+    except LogError as e:
+        raise LogError(
+            f"{e.expected} after rounding with float_format={float_format!r} (use more digits)",
+            path=e.path,
+            row=e.row,
+            column=e.column,
+            got=e.got,
+            index=e.index,
+            name=e.name,
+        ) from None
+
+    with open(p, "w", encoding="utf-8", newline="") as f:
+        writer = csv.writer(f, lineterminator="\n")
+        writer.writerow(names)
+        writer.writerows(zip(*text, strict=True))

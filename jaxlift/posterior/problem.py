@@ -1,0 +1,380 @@
+"""Bayesian uncertainty of the calibration: an emcee posterior over the bulk modulus and
+the friction parameters (and optionally any other named parameters and noise scales).
+
+The statistical model, in one place:
+
+* **Sampled**: ``beta, cf_con, cf_in, cf_out, d`` by default, plus the parameters of the
+  switched-on effects; any other docs/model.md parameter on request. Sampling happens in the
+  unconstrained coordinates of each :class:`~jaxlift.ParamInfo` (``log``/``logit``); the
+  log-density includes the log-Jacobian of that transform, so the posterior is the one
+  of the *physical* parameters under the priors below. Results are reported physically.
+* **Fixed**: everything else at the least-squares values (the motor set among them), and
+  each log's initial-height offset ``x0`` at its least-squares value (a nuisance
+  parameter that the data fix to ~0.04 mm and that hardly correlates with the sampled
+  ones). The posterior is therefore conditional on the calibrated motor map.
+* **Priors** (:data:`DEFAULT_PRIORS`, :func:`default_prior`): explicit, physically
+  motivated, wide. ``beta`` log-normal around ideal oil (1.4 GPa, x/÷ 3 at one sigma);
+  friction log-normal around the nominal values of docs/model.md (x/÷ 10, ``cf_in`` x/÷ 3);
+  effect parameters log-normal around their typical size (``ParamInfo.scale``, x/÷ 10).
+  Every prior is truncated to the parameter's bounds.
+* **Likelihood**: residuals (model - measured) / sensor noise per log and signal follow
+  a zero-mean Gaussian AR(1) process, ``r_t = rho r_{t-1} + e_t``, ``e_t ~ N(0, s^2)``,
+  with ``rho`` and ``s`` estimated once from the least-squares residuals of that log and
+  signal (``likelihood="ar1"``, the default). On white sensor noise with a correct model
+  this is the plain Gaussian likelihood with the sensor noise (``rho ~ 0``, ``s ~ 1``);
+  on real logs, whose residuals are autocorrelated and larger than the sensor noise,
+  it widens the posterior by about ``sqrt(chi2/N * (1 + rho) / (1 - rho))``, like the
+  least-squares standard errors. ``likelihood="white"`` uses independent noise at the
+  sensor levels (docs/model.md), which is over-confident on real logs. With
+  ``sample_noise=True`` a factor on the noise scale of each signal (height, speed,
+  pressure) is sampled too (log-normal prior, median 1, x/÷ 2).
+
+The log-probability is one jitted JAX function of the whole batch of walkers (emcee's
+``vectorize=True``); solver failures, trajectories that leave the mast and points
+outside the priors' support give ``-inf``, never NaN.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import math
+from collections.abc import Callable, Mapping, Sequence
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike, Float
+
+from ..calibrate.experiment import PARAMETER_SETS, Experiment, make_experiments, resolve_free
+from ..calibrate.fit import fit
+from ..model.build import Model, all_param_infos, make_effects, model_params, with_params
+from ..model.effects import EFFECTS
+from ..model.log import Log
+from ..model.params import ParameterError, ParamInfo, from_unconstrained, to_unconstrained
+from ..model.plant import Plant
+from ..model.simulate import simulate, x64_check
+from .priors import LogNormal, Prior, default_prior, prior_from_json, prior_to_json
+
+#: Names of the per-signal noise scale factors (sampled with ``sample_noise=True``).
+SETTINGS_FILE = "posterior_settings.json"  # a posterior directory's settings (resume, draws)
+NOISE_NAMES = ("noise_height", "noise_speed", "noise_pressure")
+#: Solver step limit inside the log-probability (a failed solve is -inf).
+SIM_MAX_STEPS = 50_000
+
+
+def default_sample(effects: Sequence[str]) -> list[str]:
+    """The default sampled parameters: the dynamic set and the effects' parameters."""
+    names = list(PARAMETER_SETS["dynamic"])
+    for e in make_effects(effects):
+        names.extend(n for n in type(e).param_infos() if n not in names)
+    return names
+
+
+def noise_info(name: str) -> ParamInfo:
+    return ParamInfo(name, "-", 1.0, 0.0, 1e3, f"factor on the {name[6:]} noise scale")
+
+
+# ------------------------------------------------------------------ the problem
+@dataclasses.dataclass
+class PosteriorProblem:
+    """Everything the log-probability needs, and how it was set up.
+
+    Attributes:
+        names: sampled coordinates, in order (docs/model.md names; ``noise_*`` factors last).
+        infos: ``ParamInfo`` of each sampled coordinate (bounds, unit, transform).
+        priors: prior of each sampled coordinate (physical units).
+        values: the full parameter set at the least-squares optimum (physical units);
+            the sampled ones start there, the others stay fixed.
+        effects: names of the switched-on effects.
+        experiments: the logs, initial heights shifted by ``x0_offsets``.
+        x0_offsets: initial-height offset of each log [m] (fixed, least squares).
+        rho: lag-1 autocorrelation of the least-squares residuals, ``(n_logs, 3)``
+            (height, speed, pressure; 0 where the log lacks the signal or for
+            ``likelihood="white"``).
+        scale: innovation standard deviation of the AR(1) residual model, in units of
+            the sensor noise, ``(n_logs, 3)`` (1 for ``"white"``).
+        likelihood: ``"ar1"`` or ``"white"``.
+        theta_opt: the optimum in unconstrained coordinates.
+        cov_theta: covariance of the least-squares estimate in unconstrained
+            coordinates (starts the walkers).
+        ls_info: least-squares facts for the report (chi2/N per log, rho1, ...).
+    """
+
+    names: tuple[str, ...]
+    infos: dict[str, ParamInfo]
+    priors: dict[str, Prior]
+    values: dict[str, float]
+    effects: tuple[str, ...]
+    experiments: tuple[Experiment, ...]
+    x0_offsets: dict[str, float]
+    rho: np.ndarray
+    scale: np.ndarray
+    likelihood: str
+    theta_opt: np.ndarray
+    cov_theta: np.ndarray
+    ls_info: dict
+
+    @property
+    def ndim(self) -> int:
+        return len(self.names)
+
+    @property
+    def model(self) -> Model:
+        """The calibrated model at :attr:`values` (the least-squares optimum)."""
+        return Model.build(self.effects, self.values)
+
+    @property
+    def param_names(self) -> list[str]:
+        """The sampled physical parameters (without the noise factors)."""
+        return [n for n in self.names if n not in NOISE_NAMES]
+
+    def to_physical(self, theta: Float[ArrayLike, "... P"]) -> dict[str, np.ndarray]:
+        """Physical values of unconstrained coordinates (any leading shape)."""
+        theta = np.asarray(theta)
+        return {
+            n: np.asarray(from_unconstrained(self.infos[n], theta[..., k]))
+            for k, n in enumerate(self.names)
+        }
+
+    def settings(self) -> dict:
+        """JSON-able description (stored beside the chain; compared on resume)."""
+        return {
+            "names": list(self.names),
+            "effects": list(self.effects),
+            "likelihood": self.likelihood,
+            "values": self.values,
+            "x0_offsets": self.x0_offsets,
+            "rho": self.rho.tolist(),
+            "scale": self.scale.tolist(),
+            "theta_opt": self.theta_opt.tolist(),
+            "cov_theta": self.cov_theta.tolist(),
+            "logs": [e.name for e in self.experiments],
+            "log_hashes": [_exp_hash(e) for e in self.experiments],
+            "ls_info": self.ls_info,
+            "priors": {n: prior_to_json(p) for n, p in self.priors.items()},
+        }
+
+
+def _exp_hash(e: Experiment) -> str:
+    h = hashlib.sha256()
+    for a in (e.inputs.ts, e.inputs.pwm, e.inputs.load_kg, e.y):
+        h.update(np.ascontiguousarray(np.asarray(a)).tobytes())
+    return h.hexdigest()[:16]
+
+
+def _resolve_sample(sample, effects) -> list[str]:
+    """Sampled parameter names: as ``--free`` of the fit (sets and names)."""
+    if sample is None:
+        return default_sample(effects)
+    try:
+        return resolve_free(sample, make_effects(effects))
+    except ParameterError as err:
+        raise ParameterError(str(err).replace("--free:", "--sample:", 1)) from None
+
+
+def _ar1_stats(r: np.ndarray) -> tuple[float, float]:
+    """``rho`` and innovation scale of a zero-mean AR(1) fitted to ``r``."""
+    rho = float(np.clip(r[1:] @ r[:-1] / max(float(r[:-1] @ r[:-1]), 1e-300), -0.99, 0.99))
+    e = np.concatenate([[r[0] * math.sqrt(1 - rho**2)], r[1:] - rho * r[:-1]])
+    return rho, float(np.sqrt(np.mean(e**2)))
+
+
+def prepare_posterior(
+    logs: Sequence[Log],
+    *,
+    effects: Sequence[str] | str = (),
+    params: Mapping[str, float] | None = None,
+    sample: Sequence[str] | str | None = None,
+    likelihood: str = "ar1",
+    sample_noise: bool = False,
+    priors: Mapping[str, Prior] | None = None,
+    n_starts: int = 2,
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+) -> PosteriorProblem:
+    """Set up the posterior: least squares first, then the likelihood's noise model.
+
+    Args:
+        logs: the logs (CSV data; ``jaxlift.read_log``).
+        effects: effects switched on.
+        params: calibrated parameter values (e.g. ``params.json`` of ``jaxlift fit``);
+            ``None``: a full staged least-squares fit from the nominal values first.
+        sample: parameters to sample (names or sets ``dynamic``, ``motor``,
+            ``effects``); default the dynamic set plus the effects' parameters.
+        likelihood: ``"ar1"`` (default) or ``"white"`` (see the module docstring).
+        sample_noise: also sample a noise-scale factor per signal.
+        priors: priors overriding :func:`default_prior` (physical units).
+        n_starts, seed: multi-start of the full fit (only when ``params`` is None).
+        progress: called with a line of text per stage.
+
+    Returns:
+        A :class:`PosteriorProblem`. The sampled parameters are re-fitted by least
+        squares (with the initial-height offsets) from ``params``: that optimum and its
+        covariance start the walkers, its residuals give the AR(1) noise model.
+    """
+    x64_check()
+    if likelihood not in ("ar1", "white"):
+        raise ValueError(f"likelihood must be 'ar1' or 'white', not {likelihood!r}")
+    effs = make_effects(effects)
+    eff_names = tuple(e.name for e in effs)
+    infos_all = all_param_infos(effs)
+    names = _resolve_sample(sample, eff_names)
+    say = progress or (lambda _line: None)
+    if params is None:
+        say("least squares: full staged fit from the nominal values (no --params given)")
+        full = fit(
+            logs, effects=eff_names, free="all", staged=True, n_starts=n_starts, seed=seed,
+            progress=progress,
+        )  # fmt: skip
+        params = full.params
+    else:
+        stray = sorted(set(params) - set(infos_all))
+        if stray:
+            raise ParameterError(
+                f"parameter(s) {stray} belong to effects that are not switched on "
+                f"({list(eff_names)}); add them with --effects"
+            )
+    say(f"least squares: re-fitting the sampled parameters {', '.join(names)}")
+    ls = fit(logs, effects=eff_names, free=names, init=params, n_starts=1, progress=progress)
+    values = {k: float(v) for k, v in ls.params.items()}
+    experiments = tuple(
+        eqx.tree_at(lambda e: e.inputs.x0, exp, exp.inputs.x0 + ls.x0_offsets[exp.name])
+        for exp in make_experiments(logs)
+    )
+    # the AR(1) noise model from the least-squares residuals, per log and signal
+    plant, effs_v = with_params(Plant(), effs, values)
+    rho = np.zeros((len(experiments), 3))
+    scale = np.ones((len(experiments), 3))
+    chi2n = {}
+    for i, exp in enumerate(experiments):
+        sol = simulate(plant, effs_v, exp.inputs).check(f"simulating {exp.name}")
+        r = np.asarray(exp.scaled_residuals(sol))
+        chi2n[exp.name] = {("height", "speed", "pressure")[k]: float(np.mean(r[k] ** 2))
+                           for k in exp.signals}  # fmt: skip
+        if likelihood == "ar1":
+            for k in exp.signals:
+                rho[i, k], scale[i, k] = _ar1_stats(r[k])
+    all_names = list(names) + (
+        [n for k, n in enumerate(NOISE_NAMES) if any(k in e.signals for e in experiments)]
+        if sample_noise
+        else []
+    )
+    infos = {n: (infos_all[n] if n in infos_all else noise_info(n)) for n in all_names}
+    pri = {n: (priors or {}).get(n) or default_prior(infos[n]) for n in all_names}
+    theta_opt = np.array([float(to_unconstrained(infos[n], values.get(n, 1.0))) for n in all_names])
+    ls_info = {
+        "chi2_per_signal": chi2n,
+        "rho1_pooled": ls.rho1,
+        "stderr": ls.stderr,
+        "converged": ls.converged,
+    }
+    problem = PosteriorProblem(
+        names=tuple(all_names),
+        infos=infos,
+        priors=pri,
+        values=values,
+        effects=eff_names,
+        experiments=experiments,
+        x0_offsets=dict(ls.x0_offsets),
+        rho=rho,
+        scale=scale,
+        likelihood=likelihood,
+        theta_opt=theta_opt,
+        cov_theta=np.eye(len(all_names)),
+        ls_info=ls_info,
+    )
+    say("Laplace covariance at the optimum (starts the walkers)")
+    problem.cov_theta = _start_covariance(problem)
+    return problem
+
+
+def _start_covariance(problem: PosteriorProblem) -> np.ndarray:
+    """A Laplace covariance at the optimum in the unconstrained coordinates: the
+    Gauss--Newton information of the likelihood (forward-mode Jacobian of the whitened
+    AR(1) innovations through the simulation) plus the priors' curvature. A direction
+    the data do not constrain (``cf_in`` against ``cf_out``) so starts at the prior's
+    width. The noise factors start with a spread of 2 %."""
+    names = problem.names
+    phys = [k for k, n in enumerate(names) if n not in NOISE_NAMES]
+    infos = [problem.infos[names[k]] for k in phys]
+    plant0, effs0 = problem.model.plant, problem.model.effects
+    args = (plant0, effs0, problem.experiments, jnp.asarray(problem.rho),
+            jnp.asarray(problem.scale))  # fmt: skip
+
+    def innovations(th, args):
+        plant0, effs0, experiments, rho, scale = args
+        values = {info.name: from_unconstrained(info, th[j]) for j, info in enumerate(infos)}
+        plant, effs = with_params(plant0, effs0, values)
+        out = []
+        for i, exp in enumerate(experiments):
+            sol = simulate(plant, effs, exp.inputs, adjoint=diffrax.ForwardMode())
+            r = exp.scaled_residuals(sol)
+            for k in exp.signals:
+                rr, c = r[k], rho[i, k]
+                e = jnp.concatenate([rr[:1] * jnp.sqrt(1 - c**2), rr[1:] - c * rr[:-1]])
+                out.append(e / scale[i, k])
+        return jnp.concatenate(out)
+
+    th0 = jnp.asarray(problem.theta_opt[phys])
+    jac = np.asarray(jax.jit(jax.jacfwd(innovations))(th0, args))
+    jac = np.where(np.isfinite(jac), jac, 0.0)
+    curv = np.array(
+        [1.0 / math.log(p.factor) ** 2 if isinstance(p, LogNormal) else 1e-2
+         for p in (problem.priors[n] for n in names)]
+    )  # fmt: skip
+    h = np.diag(curv)
+    h[np.ix_(phys, phys)] += jac.T @ jac
+    w, v = np.linalg.eigh(h)
+    w = np.maximum(w, 1e-12 * w.max())
+    cov = (v / w) @ v.T
+    for j, n in enumerate(names):
+        if n in NOISE_NAMES:
+            cov[j, :] = cov[:, j] = 0.0
+            cov[j, j] = 0.02**2
+    return 0.5 * (cov + cov.T)
+
+
+def problem_from_settings(settings: Mapping, logs: Sequence[Log]) -> PosteriorProblem:
+    """Rebuild a :class:`PosteriorProblem` from :meth:`PosteriorProblem.settings` and the
+    same logs (checked by content hash)."""
+    exps = make_experiments(logs)
+    hashes = [_exp_hash(e) for e in exps]
+    if hashes != list(settings["log_hashes"]) or [e.name for e in exps] != list(settings["logs"]):
+        raise ValueError(
+            f"the logs {[e.name for e in exps]} are not the ones the stored chain was run on "
+            f"({settings['logs']}); use another --out directory"
+        )
+    off = settings["x0_offsets"]
+    exps = tuple(
+        eqx.tree_at(lambda e: e.inputs.x0, exp, exp.inputs.x0 + off[exp.name]) for exp in exps
+    )
+    effs = make_effects(settings["effects"])
+    infos_all = all_param_infos(effs)
+    names = tuple(settings["names"])
+    return PosteriorProblem(
+        names=names,
+        infos={n: (infos_all[n] if n in infos_all else noise_info(n)) for n in names},
+        priors={n: prior_from_json(p) for n, p in settings["priors"].items()},
+        values=dict(settings["values"]),
+        effects=tuple(settings["effects"]),
+        experiments=exps,
+        x0_offsets=dict(off),
+        rho=np.asarray(settings["rho"]),
+        scale=np.asarray(settings["scale"]),
+        likelihood=settings["likelihood"],
+        theta_opt=np.asarray(settings["theta_opt"]),
+        cov_theta=np.asarray(settings["cov_theta"]),
+        ls_info=dict(settings["ls_info"]),
+    )
+
+
+def _model_values(problem: PosteriorProblem) -> dict[str, float]:
+    plant, effs = problem.model.plant, problem.model.effects
+    return {k: float(v) for k, v in model_params(plant, effs).items()}
+
+
+def effect_names() -> list[str]:
+    return list(EFFECTS)

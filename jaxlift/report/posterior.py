@@ -1,0 +1,407 @@
+"""Outputs of ``jaxlift posterior``: the ArviZ DataTree, the summary, figures and the
+uncertainty report (Markdown + HTML). Nothing here prints."""
+
+from __future__ import annotations
+
+import json
+import math
+import pathlib
+from collections.abc import Sequence
+
+import arviz as az
+import numpy as np
+
+from ..analysis.oscillation import zoom_windows
+from ..analysis.regimes import segment_log
+from ..model.constants import BETA_OIL
+from ..model.log import Log
+from ..model.params import to_unconstrained
+from ..posterior.air import AIR_THRESHOLD, air_content, air_verdict, mean_working_pressure
+from ..posterior.predictive import predictive
+from ..posterior.problem import NOISE_NAMES, PosteriorProblem
+from ..posterior.sampler import SamplerRun, posterior_samples
+from .document import Report
+from .figures import new_figure, with_pyplot_figures
+
+
+def build_datatree(problem: PosteriorProblem, samples: dict, lp: np.ndarray, extra: dict,
+                   attrs: dict, seed: int = 0):  # fmt: skip
+    """The posterior (walkers as chains; physical units; derived quantities) and prior
+    draws as an ArviZ ``DataTree``."""
+
+    post = {k: np.asarray(v) for k, v in samples.items()}
+    post.update(extra)
+    rng = np.random.default_rng(seed + 1)
+    prior = {}
+    for n in problem.names:
+        info, pr = problem.infos[n], problem.priors[n]
+        d = pr.sample(rng, 8000)
+        d = d[(d >= info.lower) & (d <= info.upper)][:4000]
+        prior[n] = d[None, :]
+    return az.from_dict(
+        {"posterior": post, "sample_stats": {"lp": lp}, "prior": prior},
+        attrs={"posterior": attrs},
+    )
+
+
+def _summary(dt, names, tau_by_name):
+
+    s = az.summary(dt, var_names=names, ci_prob=0.9, ci_kind="hdi", round_to="none")
+    s = s.astype(float)
+    s.insert(0, "tau_steps", [tau_by_name.get(n, float("nan")) for n in s.index])
+    return s
+
+
+def write_outputs(
+    problem: PosteriorProblem,
+    run: SamplerRun,
+    logs: Sequence[Log],
+    out: pathlib.Path,
+    *,
+    n_predictive: int = 64,
+    seed: int = 0,
+    beta_oil: float = BETA_OIL,
+) -> dict:
+    """Write ``posterior.nc``, ``summary.csv``, ``posterior.json``, figures and the report
+    into ``out``; returns the content of ``posterior.json``."""
+    figs = out / "figures"
+    figs.mkdir(parents=True, exist_ok=True)
+    samples, lp, thin = posterior_samples(problem, run.path, run.tau)
+    tau_by_name = {n: float(t) for n, t in zip(problem.names, run.tau)}
+    extra = {}
+    p_mean = mean_working_pressure(problem)
+    air = None
+    has_hose = "hose_compliance" in problem.effects
+    if "beta" in samples:
+        phi = air_content(samples["beta"], p_mean, beta_oil)
+        extra["air_fraction"] = phi
+        air = air_verdict(phi.ravel(), p_mean, has_hose)
+    if "cf_in" in samples and "cf_out" in samples:
+        extra["cf_out_cf_in5"] = samples["cf_out"] * samples["cf_in"] ** 5
+    attrs = {
+        "jaxlift_effects": ",".join(problem.effects),
+        "jaxlift_likelihood": problem.likelihood,
+        "jaxlift_converged": int(run.converged),
+        "jaxlift_steps": run.iteration,
+        "jaxlift_burn": thin["burn"],
+        "jaxlift_thin": thin["thin"],
+        "jaxlift_p_mean_pa_abs": p_mean,
+        "jaxlift_beta_oil_pa": beta_oil,
+    }
+    dt = build_datatree(problem, samples, lp, extra, attrs, seed)
+    nc = out / "posterior.nc"
+    if nc.exists():
+        nc.unlink()
+    dt.to_netcdf(nc, engine="h5netcdf")
+    names = list(problem.names) + list(extra)
+    summ = _summary(dt, names, tau_by_name)
+    summ.to_csv(out / "summary.csv", index_label="parameter", float_format="%.6g")
+
+    # figures
+    fig_paths = {}
+    fig_paths["trace"] = _az_fig("plot_trace_dist", dt, problem.names, figs / "trace.png")
+    fig_paths["pair"] = _az_fig("plot_pair", dt, problem.param_names, figs / "pair.png")
+    fig_paths["posterior"] = _az_fig("plot_dist", dt, names, figs / "posterior.png")
+    fig_paths["prior_posterior"] = _plot_prior_posterior(problem, samples, figs)
+    fig_paths["tau"] = _plot_tau(run, figs)
+    if air is not None:
+        fig_paths["air"] = _plot_air(extra["air_fraction"], air, figs)
+    rng = np.random.default_rng(seed + 2)
+    flat = np.stack([np.asarray(samples[n]).ravel() for n in problem.names], axis=-1)
+    idx = rng.choice(flat.shape[0], size=min(n_predictive, flat.shape[0]), replace=False)
+
+    thetas = np.stack(
+        [np.asarray(to_unconstrained(problem.infos[n], flat[idx, k]))
+         for k, n in enumerate(problem.names)], axis=-1,
+    )  # fmt: skip
+    pred = predictive(problem, thetas)
+    pred_figs = []
+    for log, pr in zip(logs, pred):
+        pred_figs.extend(_plot_bands(log, pr, figs))
+
+    rows = []
+    for n in names:
+        r = summ.loc[n]
+        info = problem.infos.get(n)
+        rows.append(
+            {
+                "parameter": n,
+                "unit": info.unit if info else ("-" if n == "air_fraction" else "N"),
+                "least squares": problem.values.get(n, float("nan")) if info else float("nan"),
+                "mean": r["mean"],
+                "sd": r["sd"],
+                "HDI 5 %": r["hdi90_lb"],
+                "HDI 95 %": r["hdi90_ub"],
+                "tau [steps]": r["tau_steps"],
+                "ESS bulk": r["ess_bulk"],
+                "R-hat": r["r_hat"],
+            }
+        )
+    result = {
+        "converged": run.converged,
+        "steps": run.iteration,
+        "resumed_from": run.resumed_from,
+        "tau": tau_by_name,
+        "tau_factor": run.tau_factor,
+        "acceptance": run.acceptance,
+        "burn": thin["burn"],
+        "thin": thin["thin"],
+        "n_draws": int(flat.shape[0]),
+        "wall_s_this_run": run.wall_s,
+        "move": run.move,
+        "n_walkers": run.n_walkers,
+        "n_devices_this_run": run.n_devices,
+        "summary": rows,
+        "air": air,
+        "effects": list(problem.effects),
+        "likelihood": problem.likelihood,
+        "sampled": list(problem.names),
+    }
+    with open(out / "posterior.json", "w", encoding="utf-8") as fh:
+        json.dump(_jsonable(result), fh, indent=2)
+        fh.write("\n")
+    _report(problem, run, logs, out, rows, air, fig_paths, pred_figs, thin, p_mean)
+    return result
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        v = float(x)
+        return v if math.isfinite(v) else None
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x
+
+
+def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
+    rep = Report("jaxlift posterior: how sure are we?")
+    conv = (
+        f"**converged**: {run.iteration} steps > {run.tau_factor:g} x max tau "
+        f"({max(run.tau):.1f} steps), tau stable"
+        if run.converged
+        else f"**NOT CONVERGED**: the step limit was reached after {run.iteration} steps; "
+        f"{run.tau_factor:g} x max tau = {run.tau_factor * max(run.tau):.0f} steps would be "
+        "needed. The intervals below are provisional; run the same command again to go on"
+    )
+    rep.text(
+        f"Logs: {', '.join(f'`{lg.name}`' for lg in logs)}. Model: baseline"
+        f"{''.join(' + ' + e for e in problem.effects)}. Sampled (emcee ensemble sampler, "
+        f"{run.move} move, "
+        f"{run.tau.size} coordinates): {', '.join(f'`{n}`' for n in problem.names)}. "
+        f"Chain: {conv}."
+    )
+    if air is not None:
+        rep.heading("Air in the oil")
+        rep.text(air["text"])
+        rep.text(
+            f"Gas volume fraction `phi = p * (1/beta - 1/beta_oil)` at the mean working "
+            f"pressure p = {p_mean / 1e6:.2f} MPa (absolute: gauge line pressure over the "
+            f"moving parts of the logs + 1 atm), `beta_oil` = {BETA_OIL:.3g} Pa (ideal oil, "
+            f"docs/model.md). Mean {air['phi_mean'] * 100:.3g} %, 90 % HDI "
+            f"[{air['phi_hdi90'][0] * 100:.3g}, {air['phi_hdi90'][1] * 100:.3g}] %. Bleeding "
+            f"is called indicated when the whole interval lies above {AIR_THRESHOLD:.1%} "
+            "gas at working pressure (about 10 % free gas at atmospheric pressure at "
+            "10 MPa: visibly foamy oil), not indicated when it lies wholly below."
+        )
+        if "air" in figs:
+            rep.figure(figs["air"], "Posterior of the gas fraction at the working pressure.")
+    rep.heading("Posterior summary")
+    rep.table(
+        rows,
+        floatfmt=".4g",
+        caption="Physical units. HDI = 90 % highest-density interval. tau = integrated "
+        "autocorrelation time of the ensemble (emcee); ESS from ArviZ with each walker as "
+        "a chain. R-hat across the walkers of one ensemble is not a valid convergence test "
+        "(the walkers are not independent chains): judge convergence by tau and ESS. "
+        "`cf_out_cf_in5` = cf_out * cf_in^5, the combination the data determine.",
+    )
+    rep.figure(figs["posterior"], "Marginal posteriors with 90 % HDI (ArviZ).")
+    rep.heading("Priors")
+    rep.table(
+        [
+            {
+                "parameter": n,
+                "unit": problem.infos[n].unit,
+                "prior": problem.priors[n].describe(problem.infos[n].unit),
+                "bounds": f"[{problem.infos[n].lower:g}, {problem.infos[n].upper:g}]",
+                "why": problem.priors[n].reason,
+            }
+            for n in problem.names
+        ],
+        caption="Priors (truncated to the bounds). Sampling is in the unconstrained "
+        "coordinates of each parameter (log of the distance to the lower bound) with the "
+        "Jacobian of the transform, so these are priors on the physical values.",
+    )
+    rep.figure(
+        figs["prior_posterior"],
+        "Prior (grey line) and posterior (histogram) of each sampled parameter, log axis.",
+    )
+    rep.heading("The statistical model")
+    lik = (
+        "AR(1) residuals: per log and signal, (model - measured) / sensor noise follows "
+        "r_t = rho r_(t-1) + e_t with rho and the innovation scale fixed at their values "
+        "in the least-squares residuals (table). Real logs' residuals are autocorrelated "
+        "and larger than the sensor noise; a white-noise likelihood would make the "
+        "intervals far too narrow. On white noise and a correct model this is the plain "
+        "Gaussian likelihood at the sensor noise."
+        if problem.likelihood == "ar1"
+        else "White Gaussian noise at the sensor levels of docs/model.md (height 0.5 mm, speed "
+        "sqrt(1e-7 / T_s)). Over-confident when the residuals are autocorrelated."
+    )
+    rep.text(f"Likelihood: {lik}")
+    if any(n in NOISE_NAMES for n in problem.names):
+        rep.text("Noise-scale factors per signal are sampled (`noise_*`).")
+    rep.text(
+        "Fixed at the least-squares values: all parameters not sampled (the motor set "
+        "among them: the posterior is conditional on the calibrated motor map) and each "
+        "log's initial-height offset: "
+        + ", ".join(f"`{k}` {v * 1e3:+.3f} mm" for k, v in problem.x0_offsets.items())
+        + ". Walkers start around the least-squares optimum, spread by its covariance "
+        "(combined with the priors, so that directions the data do not determine start "
+        "at the prior's width)."
+    )
+    sig = ("height", "speed", "pressure")
+    rep.table(
+        [
+            {
+                "log": e.name,
+                "signal": sig[k],
+                "chi2/N at LS": problem.ls_info["chi2_per_signal"][e.name][sig[k]],
+                "rho": float(problem.rho[i, k]),
+                "innovation scale / sensor noise": float(problem.scale[i, k]),
+            }
+            for i, e in enumerate(problem.experiments)
+            for k in e.signals
+        ],
+        floatfmt=".3g",
+        caption="Residual noise model per log and signal.",
+    )
+    rep.heading("Convergence")
+    rep.text(
+        f"{run.iteration} steps x {run.n_walkers} walkers; acceptance fraction "
+        f"{run.acceptance:.2f}; burn-in {thin['burn']} steps "
+        f"discarded, thinned by {thin['thin']}."
+        + (f" Resumed from step {run.resumed_from}." if run.resumed_from else "")
+    )
+    rep.figure(figs["tau"], "Estimated max tau against chain length; converged above the line.")
+    rep.figure(figs["trace"], "Traces and marginals per walker (ArviZ).")
+    rep.figure(figs["pair"], "Pairs (corner plot) of the sampled parameters (ArviZ).")
+    rep.heading("Posterior predictive: height and speed over each log")
+    rep.text(
+        "Bands: 5-95 % of the model trajectories of posterior draws (parameter "
+        "uncertainty only; the sensor noise is not added), measurements on top."
+    )
+    for p, cap in pred_figs:
+        rep.figure(p, cap)
+    rep.write(out)
+
+
+def _az_fig(fn_name, dt, names, path):
+
+    def make():
+        pc = getattr(az, fn_name)(dt, var_names=list(names), backend="matplotlib")
+        pc.savefig(path, dpi=80)
+
+    with_pyplot_figures(make)
+    return str(path)
+
+
+def _plot_prior_posterior(problem, samples, figs):
+    names = list(problem.names)
+    fig, axes = new_figure(1, len(names), figsize=(3.2 * len(names), 2.8), squeeze=False)
+    for ax, n in zip(axes[0], names):
+        info, pr = problem.infos[n], problem.priors[n]
+        x = np.asarray(samples[n]).ravel()
+        pos = x > 0
+        if pos.all():
+            q = np.concatenate([pr.quantiles([0.02, 0.98]), np.quantile(x, [0.0, 1.0])])
+            q = q[q > 0]
+            grid = np.geomspace(q.min(), q.max(), 400)
+            lg = np.log10(grid)
+            dens = np.exp(np.asarray(pr.log_pdf(grid))) * grid * math.log(10)
+            dens = np.where((grid >= info.lower) & (grid <= info.upper), dens, 0.0)
+            ax.hist(np.log10(x), bins=40, density=True, color="C0", alpha=0.6, label="posterior")
+            ax.plot(lg, dens, color="0.3", label="prior")
+            ax.set_xlabel(f"log10 {n} [{info.unit}]")
+        else:
+            ax.hist(x, bins=40, density=True, color="C0", alpha=0.6)
+            ax.set_xlabel(f"{n} [{info.unit}]")
+        ax.set_yticks([])
+    axes[0][0].legend(fontsize=7)
+    return _save(fig, figs / "prior_posterior.png")
+
+
+def _plot_tau(run, figs):
+    fig, ax = new_figure(figsize=(5, 3.2))
+    if run.tau_history:
+        it, tau = zip(*run.tau_history)
+        ax.plot(it, tau, "o-", label="max tau")
+        n = np.linspace(0, max(it), 50)
+        ax.plot(n, n / run.tau_factor, "--", color="0.5", label=f"steps / {run.tau_factor:g}")
+        ax.legend(fontsize=8)
+    ax.set_xlabel("steps")
+    ax.set_ylabel("tau [steps]")
+    ax.grid(alpha=0.3)
+    return _save(fig, figs / "tau.png")
+
+
+def _plot_air(phi, air, figs):
+    fig, ax = new_figure(figsize=(5.5, 3.2))
+    ax.hist(np.asarray(phi).ravel() * 100, bins=50, density=True, color="C1", alpha=0.7)
+    lo, hi = air["phi_hdi90"]
+    ax.axvspan(lo * 100, hi * 100, color="C1", alpha=0.15, label="90 % HDI")
+    ax.axvline(air["threshold"] * 100, color="k", ls="--", label="bleeding threshold")
+    ax.set_xlabel(f"gas volume fraction at {air['p_mean_pa_abs'] / 1e6:.1f} MPa [%]")
+    ax.set_yticks([])
+    ax.legend(fontsize=8)
+    return _save(fig, figs / "air_fraction.png")
+
+
+def _save(fig, path) -> str:
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    return str(path)
+
+
+def _plot_bands(log: Log, pr: dict, figs) -> list[tuple[str, str]]:
+
+    ok = pr["ok"]
+    h, v = pr["height"][ok], pr["speed"][ok]
+    t = log.time_s
+    windows = [None]
+    try:
+        windows += list(zoom_windows(log, segment_log(log), n=1))
+    except Exception:  # noqa: BLE001 - a zoom is a nicety; short logs may have none
+        pass
+    out = []
+    for win in windows:
+        fig, (a1, a2) = new_figure(2, 1, figsize=(10, 5.5), sharex=True)
+        sl = slice(None) if win is None else (t >= win[0]) & (t <= win[1])
+        for ax, data, meas, unit, scale in (
+            (a1, h, log.height_m, "height [m]", 1.0),
+            (a2, v, log.speed_mps, "speed [m/s]", 1.0),
+        ):
+            if meas is not None:
+                ax.plot(t[sl], meas[sl], ".", ms=1.5, color="k", alpha=0.5, label="measured")
+            if data.size:
+                lo, mid, hi = np.quantile(data[:, sl] * scale, [0.05, 0.5, 0.95], axis=0)
+                ax.fill_between(t[sl], lo, hi, color="C0", alpha=0.4, label="model 5-95 %")
+                ax.plot(t[sl], mid, color="C0", lw=0.8)
+            ax.set_ylabel(unit)
+            ax.grid(alpha=0.3)
+        a1.legend(fontsize=8, loc="upper left")
+        a2.set_xlabel("time [s]")
+        title = log.name if win is None else f"{log.name}: {win[0]:.0f}-{win[1]:.0f} s"
+        a1.set_title(f"{title}: posterior predictive ({int(ok.sum())} draws)")
+        fig.tight_layout()
+        p = figs / (f"{log.name}_predictive.png" if win is None else
+                    f"{log.name}_predictive_zoom.png")  # fmt: skip
+        fig.savefig(p, dpi=90)
+        out.append((str(p), f"{title}: 5-95 % band of the posterior predictive."))
+    return out

@@ -1,0 +1,216 @@
+"""``jaxlift diagnose`` as a function: fit the baseline, screen and confirm the
+candidate effects, and write ``diagnosis.json``, the figures and the report.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from ..analysis.oscillation import oscillation_table, zoom_windows
+from ..analysis.regimes import segment_log
+from ..calibrate.diagnose import diagnose, diagnose_iteratively
+from ..calibrate.fit import estimate_x0_offsets
+from ..model.log import Log
+from ..report.analysis_plots import plot_oscillations_vs_height
+from ..report.document import Report, json_safe
+from ..report.fit import plot_error_steps
+from ..report.plots import plot_overlay
+from .fit import chi2n, simulate_logs
+
+# ------------------------------------------------------------------ diagnose
+#: What each effect looks like in a log: the physical signature a service engineer
+#: can check on their own data.
+SIGNATURES = {
+    "stick_slip": "sustained oscillations at low speed whose speed touches zero",
+    "motor_inertia": "the speed lags the input after every step of the duty cycle",
+    "motor_droop": "the lifting speed falls as the load (pressure) grows",
+    "leakage": "the fork sinks while the valve is closed (holds)",
+    "entrained_air": "the oscillation frequency depends on pressure (load)",
+    "hose_compliance": "the oscillation frequency varies less with height than the model's",
+    "mast_compliance": "a second, higher peak in the speed spectrum",
+    "input_delay": "motion starts a fixed time after each input change",
+}
+
+
+def _signature_metrics(log: Log, sim: dict[str, np.ndarray]) -> dict[str, float]:
+    """Numbers behind the signatures, measured vs model."""
+    segs = segment_log(log)
+    out: dict[str, float] = {}
+    holds = [s for s in segs if s.regime == "hold" and s.duration > 1.5]
+    if holds:
+
+        def slope(h):
+            return float(
+                np.mean([np.polyfit(log.time_s[s.slice], h[s.slice], 1)[0] for s in holds])
+            )
+
+        out["hold_sink_meas_mmps"] = slope(log.height_m) * 1e3
+        out["hold_sink_model_mmps"] = slope(sim["height"]) * 1e3
+    slow = [s for s in segs if s.regime == "slow"]
+    if slow and log.speed_mps is not None:
+        k = max(1, int(round(0.1 / log.sample_period)))
+        kern = np.ones(k) / k
+        idx = np.concatenate([np.arange(s.start, s.stop) for s in slow])
+        vm = np.convolve(log.speed_mps, kern, mode="same")[idx]
+        vs = sim["speed"][idx]
+        out["slow_share_near_zero_meas"] = float(np.mean(vm < 0.003))
+        out["slow_share_near_zero_model"] = float(np.mean(vs < 0.003))
+    return out
+
+
+def run_diagnose(
+    logs: Sequence[Log],
+    validate_logs: Sequence[Log] = (),
+    *,
+    out_dir: str | pathlib.Path,
+    iterate: bool = True,
+    n_starts: int = 2,
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+) -> list:
+    """Diagnose (iteratively: add the winner and diagnose again until ``none``), write
+    ``diagnosis.json``, figures and the report. Returns the list of diagnoses."""
+
+    if iterate:
+        steps = diagnose_iteratively(
+            logs, validate_logs, n_starts=n_starts, seed=seed, progress=progress
+        )
+    else:
+        steps = [diagnose(logs, validate_logs, n_starts=n_starts, seed=seed, progress=progress)]
+    out = pathlib.Path(out_dir)
+    figs = out / "figures"
+    figs.mkdir(parents=True, exist_ok=True)
+    all_logs = [*logs, *validate_logs]
+    # the models of each step: baseline, +effect 1, +effect 2, ...
+    models = [(d.base_effects, d.base_fit.params) for d in steps]
+    if steps[-1].winner_fit is not None:
+        wf = steps[-1].winner_fit
+        models.append((wf.effects, wf.params))
+    # each model's own initial-height offsets: the fit's for the fitted logs, estimated
+    # under the model for the held-out ones (see estimate_x0_offsets)
+    x0s = [d.base_fit.x0_offsets for d in steps]
+    if steps[-1].winner_fit is not None:
+        x0s.append(steps[-1].winner_fit.x0_offsets)
+    sims = {
+        tuple(e): simulate_logs(p, e, all_logs, {**estimate_x0_offsets(p, e, validate_logs), **x0})
+        for (e, p), x0 in zip(models, x0s)
+    }
+    labels = ["baseline" + "".join(f" + {x}" for x in e) for e, _ in models]
+    error_rows = []
+    for (e, _p), label in zip(models, labels):
+        row = {"model": label}
+        for i, lg in enumerate(all_logs):
+            role = "fit" if i < len(logs) else "held-out"
+            row[f"{lg.name} ({role}) chi2/N"] = chi2n(lg, sims[tuple(e)][i])
+        error_rows.append(row)
+    plot_error_steps(error_rows, figs / "error_by_step.png")
+    first = steps[0]
+    verdicts = [d.verdict for d in steps if d.verdict != "none"]
+    dropped = [name for d in steps for name in d.dropped]
+    data = {
+        "verdict": first.verdict,
+        "verdicts": verdicts,
+        "dropped": dropped,
+        "ranking": first.as_dict()["ranking"],
+        "steps": [d.as_dict() for d in steps],
+        "errors_by_step": error_rows,
+        "final_effects": list(models[-1][0]),
+        "final_params": {k: float(v) for k, v in models[-1][1].items()},
+        "signatures": {},
+    }
+    rep = Report("jaxlift diagnosis: which physical effect is missing?")
+    missing = ", ".join(f"**{v}**" for v in verdicts if v not in dropped) or "**none**"
+    rep.text(
+        f"Fitted logs: {', '.join(f'`{lg.name}`' for lg in logs)}; held out: "
+        f"{', '.join(f'`{lg.name}`' for lg in validate_logs) or 'none'}. "
+        f"Missing from the baseline model: {missing}."
+    )
+    rep.heading("The error falling, step by step")
+    rep.table(error_rows, caption="chi2 per sample (1 = sensor noise level) of each model.")
+    rep.figure(figs / "error_by_step.png", "Error of each model on fitted and held-out logs.")
+    for k, d in enumerate(steps):
+        rep.heading(
+            f"Step {k + 1}: model = baseline{''.join(' + ' + x for x in d.base_effects)}; "
+            f"verdict: {d.verdict}"
+        )
+        for name, dbic in d.dropped.items():
+            rep.text(
+                f"Backward check after adding {d.verdict}: without **{name}** the BIC "
+                f"changes by only {dbic:+.1f} (< 10): {d.verdict} explains what {name} "
+                f"did, so {name} is dropped again."
+            )
+        rep.text(
+            f"chi2/N of the fitted model {d.base_chi2 / d.n_residuals:.3g}; residual "
+            f"autocorrelation inflates variances by {d.inflation:.1f} (so the tests count "
+            f"{d.n_residuals / d.inflation:.0f} effective samples, not {d.n_residuals})."
+        )
+        rep.table(
+            [
+                {
+                    "effect": s.effect,
+                    "score z": s.z,
+                    "p (screen)": s.p_value,
+                    "dBIC (refit)": s.delta_bic,
+                    "held-out chi2/N before": s.heldout_chi2_before,
+                    "after": s.heldout_chi2_after,
+                    "signature": SIGNATURES.get(s.effect, ""),
+                }
+                for s in d.ranking
+            ],
+            caption="Ranking: confirmed candidates by BIC change (negative = better), then "
+            "the others by score. Verdict = largest BIC drop beyond 10 whose held-out "
+            "chi2 also falls by more than 10 (effective samples).",
+        )
+    # the signature, on the user's own data, before and after adding the effects
+    rep.heading("The physical signature on your data")
+    base_sims = sims[tuple(models[0][0])]
+    final_sims = sims[tuple(models[-1][0])]
+    osc = {"baseline": [], labels[-1]: []}
+    for i, lg in enumerate(all_logs):
+        sig_b = _signature_metrics(lg, base_sims[i])
+        sig_f = _signature_metrics(lg, final_sims[i])
+        data["signatures"][lg.name] = {"baseline": sig_b, "final": sig_f}
+        if lg.speed_mps is not None:
+            segs = segment_log(lg)
+            osc["baseline"].extend(oscillation_table(lg, base_sims[i]["speed"], segs))
+            osc[labels[-1]].extend(oscillation_table(lg, final_sims[i]["speed"], segs))
+        if i == 0:
+            segs = segment_log(lg)
+            for w, (t0, t1) in enumerate(zoom_windows(lg, segs, n=2)):
+                p = plot_overlay(
+                    lg,
+                    [
+                        ("baseline", base_sims[i]["height"], base_sims[i]["speed"], None),
+                        (labels[-1], final_sims[i]["height"], final_sims[i]["speed"], None),
+                    ],
+                    figs / f"{lg.name}_signature{w + 1}.png",
+                    window=(t0, t1),
+                    title=f"{lg.name}: {t0:.0f}-{t1:.0f} s",
+                )
+                rep.figure(p, f"{lg.name}, {t0:.0f}-{t1:.0f} s: measured, baseline, final model.")
+    if any(osc.values()):
+        p = plot_oscillations_vs_height(osc, figs / "oscillations_vs_height.png")
+        rep.figure(
+            p,
+            "Oscillation frequency and amplitude per steady segment against height: "
+            "measured (black), baseline and final model.",
+        )
+    sig_rows = [
+        {"log": name, "model": which, **vals}
+        for name, v in data["signatures"].items()
+        for which, vals in v.items()
+    ]
+    rep.table(
+        sig_rows,
+        caption="Signature numbers: sinking speed in holds (leakage), share of slow "
+        "motion with speed near zero (stick-slip); measured vs model.",
+    )
+    with open(out / "diagnosis.json", "w", encoding="utf-8") as fh:
+        json.dump(json_safe(data), fh, indent=2)
+        fh.write("\n")
+    rep.write(out)
+    return steps

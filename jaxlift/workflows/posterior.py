@@ -1,0 +1,132 @@
+"""``jaxlift posterior`` as a function: prepare (or resume) the posterior problem, run the
+sampler to convergence, and write the chain, the ArviZ file, the summary and the report.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+from collections.abc import Callable, Mapping, Sequence
+
+import numpy as np
+
+from ..model.build import make_effects
+from ..model.constants import BETA_OIL
+from ..model.log import Log
+from ..model.params import save_params_json
+from ..posterior.likelihood import cpu_devices
+from ..posterior.moves import AbstractMove, DESnookerMove
+from ..posterior.predictive import as_list
+from ..posterior.problem import SETTINGS_FILE, prepare_posterior, problem_from_settings
+from ..posterior.sampler import sample_posterior
+from ..report.posterior import write_outputs
+
+# ------------------------------------------------------------------ whole job
+
+
+def run_posterior(
+    logs: Sequence[Log],
+    out_dir: str | os.PathLike,
+    *,
+    effects: Sequence[str] | str = (),
+    params: Mapping[str, float] | None = None,
+    sample: Sequence[str] | str | None = None,
+    likelihood: str = "ar1",
+    sample_noise: bool = False,
+    n_walkers: int = 32,
+    max_steps: int = 20_000,
+    seed: int = 0,
+    chunk: int = 50,
+    tau_factor: float = 50.0,
+    n_predictive: int = 64,
+    beta_oil: float = BETA_OIL,
+    batch: str = "map",
+    move: AbstractMove | None = None,
+    devices: int | None = None,
+    progress: Callable[[str], None] | None = None,
+    progress_bar: bool = False,
+) -> dict:
+    """The whole job behind ``jaxlift posterior``: set up (least squares), sample (or
+    resume the chain in ``out_dir``), summarise and report.
+
+    Writes into ``out_dir``: ``chain.h5`` (emcee), ``posterior_settings.json`` (the
+    set-up, compared on resume), ``params.json`` (the calibrated values, as ``jaxlift
+    fit`` writes them), ``posterior.nc`` (ArviZ DataTree), ``summary.csv``,
+    ``posterior.json``, ``figures/*.png``, ``report.md`` and ``report.html``.
+
+    If ``out_dir`` already has a chain, the run resumes it; the requested settings must
+    match the stored ones (else :class:`ValueError`; ``move`` among them: a directory
+    from before the choice of move holds a stretch-move chain). ``move`` and
+    ``devices``: see :func:`sample_posterior`. Returns the content of
+    ``posterior.json``."""
+
+    say = progress or (lambda _line: None)
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    chain = out / "chain.h5"
+    settings_path = out / SETTINGS_FILE
+    move = DESnookerMove() if move is None else move
+    if not isinstance(move, AbstractMove):  # fails here, before the least squares
+        raise TypeError(f"move must be a jaxlift move (jaxlift.posterior.moves), not {move!r}")
+    requested = {
+        "effects": sorted(e.name for e in make_effects(effects)),
+        "sample": None if sample is None else as_list(sample),
+        "likelihood": likelihood,
+        "sample_noise": bool(sample_noise),
+        "n_walkers": int(n_walkers),
+        "seed": int(seed),
+        "move": move.name,
+        "params": None if params is None else {k: float(v) for k, v in params.items()},
+    }
+    if settings_path.exists():
+        with open(settings_path, encoding="utf-8") as fh:
+            stored = json.load(fh)
+        stored["requested"].setdefault("move", "stretch")  # the only one before
+        diff = {
+            k: (stored["requested"].get(k), v)
+            for k, v in requested.items()
+            if stored["requested"].get(k) != v and not (k == "params" and v is None)
+        }
+        if diff:
+            raise ValueError(
+                f"{out} holds a chain run with other settings: "
+                + "; ".join(f"{k}: stored {a!r}, requested {b!r}" for k, (a, b) in diff.items())
+                + ". Use another --out directory, or the same settings to resume."
+            )
+        problem = problem_from_settings(stored["problem"], logs)
+        if chain.exists():
+            say(f"resuming the chain in {chain}")
+    else:
+        if chain.exists():
+            raise ValueError(f"{chain} exists without {settings_path}; remove it or use "
+                             "another --out directory")  # fmt: skip
+        problem = prepare_posterior(
+            logs, effects=effects, params=params, sample=sample, likelihood=likelihood,
+            sample_noise=sample_noise, progress=progress, seed=seed,
+        )  # fmt: skip
+        with open(settings_path, "w", encoding="utf-8") as fh:
+            json.dump({"requested": requested, "problem": problem.settings()}, fh, indent=1)
+    save_params_json(
+        out / "params.json",
+        problem.values,
+        comment="calibrated by least squares (jaxlift posterior); effects: "
+        + (", ".join(problem.effects) or "none"),
+    )
+    say(
+        f"sampling {', '.join(problem.names)} with {n_walkers} walkers (likelihood "
+        f"{problem.likelihood}, {move.name} move, on {len(cpu_devices(devices) or (0,))} "
+        f"device(s)); until {tau_factor:g} tau or {max_steps} steps"
+    )
+    run = sample_posterior(
+        problem, chain, n_walkers=n_walkers, max_steps=max_steps, seed=seed, chunk=chunk,
+        tau_factor=tau_factor, batch=batch, move=move, devices=devices,
+        progress=progress_bar,
+    )  # fmt: skip
+    say(
+        f"{run.iteration} steps, max tau {np.max(run.tau):.1f}: "
+        + ("converged" if run.converged else "NOT converged")
+    )
+    return write_outputs(
+        problem, run, logs, out, n_predictive=n_predictive, seed=seed, beta_oil=beta_oil
+    )
