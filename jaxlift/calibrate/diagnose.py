@@ -22,7 +22,15 @@ For every candidate effect of docs/model.md that is not yet in the model:
    than ``bic_threshold`` (default 10: "very strong" on Kass & Raftery's scale) and,
    where held-out logs are given, their chi2 falls by more than the same threshold
    (in effective samples; each held-out log's initial height is estimated under each
-   model, a nuisance as in the fit); else ``"none"``.
+   model, a nuisance as in the fit); else ``"none"``. When the best two candidates
+   that pass are within ``bic_threshold`` of each other the data cannot tell them
+   apart: the verdict is ``"undecided"``, between those two, with the evidence for each
+   and an experiment that would separate them (:data:`SEPARATING_EXPERIMENTS`).
+
+No candidate ends the diagnosis by failing: a screen whose simulation fails, or a
+refit that fails, is recorded on that candidate (:attr:`EffectScreen.failure`, why and
+where) and the others go on. If the baseline fit itself failed, the verdict is
+``"undecided"`` with that reason.
 
 :func:`diagnose_iteratively` adds the winner and diagnoses again until ``none``,
 checking after each addition whether an effect added earlier has become redundant.
@@ -66,6 +74,8 @@ class EffectScreen:
     heldout_chi2_before: float | None = None
     heldout_chi2_after: float | None = None
     fitted_params: dict[str, float] | None = None
+    fitted_stderr: dict[str, float] | None = None  # standard errors of fitted_params
+    failure: str | None = None  # why this candidate could not be screened or refitted
 
     def as_dict(self) -> dict:
         return {k: v for k, v in dataclasses.asdict(self).items()}
@@ -84,10 +94,16 @@ class Diagnosis:
     #: effects removed again after the winner was added (backward check of
     #: :func:`diagnose_iteratively`): name -> BIC change when removed (< threshold)
     dropped: dict[str, float] = dataclasses.field(default_factory=dict)
+    #: with verdict "undecided": the candidates the data cannot tell apart (best first)
+    undecided_between: list[str] = dataclasses.field(default_factory=list)
+    #: with verdict "undecided": why, and the experiment that would separate them
+    reasons: list[str] = dataclasses.field(default_factory=list)
 
     def as_dict(self) -> dict:
         return {
             "verdict": self.verdict,
+            "undecided_between": self.undecided_between,
+            "reasons": self.reasons,
             "ranking": [r.as_dict() for r in self.ranking],
             "base_effects": self.base_effects,
             "base_chi2": self.base_chi2,
@@ -131,11 +147,21 @@ def screen_effects(
         step = secant_fraction * (info.scale or 1.0)
         effs = base.model.with_effect(name, {par: step}).effects
         prob_e = dataclasses.replace(problem, effects=effs)  # same theta, effect switched on
-        return par, step, prob_e.residuals_at(theta)
+        try:
+            return par, step, prob_e.residuals_at(theta), None
+        except Exception as err:  # noqa: BLE001 -- one candidate's failure, reported
+            return par, step, None, f"{type(err).__name__}: {err}"
 
     out = []
     # one thread per core: each candidate is its own compiled simulation (_parallel.py)
-    for name, (par, step, rs) in zip(candidates, thread_map(secant, candidates, workers)):
+    nan = float("nan")
+    for name, (par, step, rs, err) in zip(candidates, thread_map(secant, candidates, workers)):
+        if err is None and not np.all(np.isfinite(rs)):
+            err = "the simulation failed on at least one log (solver failure)"
+        if err is not None:
+            why = f"screen with {par} = {step:g}: {err}"
+            out.append(EffectScreen(name, par, nan, nan, nan, nan, failure=why))
+            continue
         g = (rs - r) / step
         coef, *_ = np.linalg.lstsq(J, g, rcond=None)
         g_perp = g - J @ coef
@@ -151,7 +177,7 @@ def screen_effects(
             drop = max(score, 0.0) ** 2 / gg
             psi = max(score, 0.0) / gg  # one Gauss-Newton step from the nesting value
         out.append(EffectScreen(name, par, z, _norm_sf(z), drop, psi))
-    return sorted(out, key=lambda s: -s.z)
+    return sorted(out, key=lambda s: -s.z if math.isfinite(s.z) else math.inf)
 
 
 def _bic(chi2: float, k: int, n: int, infl: float) -> float:
@@ -192,11 +218,16 @@ def diagnose(
         say(f"fitting the model (effects: {', '.join(base_effects) or 'none'})")
         base = fit(logs, effects=base_effects, free=free, init=init, staged=True,
                    n_starts=n_starts, seed=seed, workers=workers, progress=progress)  # fmt: skip
+    if not math.isfinite(base.chi2):
+        why = f"the fit of the model ({', '.join(base.effects) or 'baseline'}) failed: "
+        why += "; ".join(st.message for st in base.stages)
+        say(f"undecided: {why}")
+        return Diagnosis("undecided", [], list(base.effects), base.chi2, base.n_residuals,
+                         base.inflation, base, None, reasons=[why])  # fmt: skip
     ranking = screen_effects(base, logs, workers=workers)
     say("score screens: " + ", ".join(f"{s.effect} z={s.z:.1f}" for s in ranking))
     n_held = sum(e.n_residuals for e in make_experiments(validate_logs))
     bic0 = _bic(base.chi2, len(base.free), base.n_residuals, base.inflation)
-    winner, winner_fit, best_dbic = "none", None, -bic_threshold
     to_confirm = [s for s in ranking if s.z > z_threshold][:n_confirm]  # None: all
     guesses = {}  # start values of each candidate's switch parameter
     for s in to_confirm:
@@ -209,32 +240,46 @@ def diagnose(
     # starts of one candidate would wait on the same compilation
     jobs = [(s, g[k]) for k in range(2) for s in to_confirm if len(g := guesses[s.effect]) > k]
 
-    def refit(job) -> tuple[FitResult | None, float | None]:
+    def refit(job) -> tuple[FitResult | None, float | None, str | None]:
         if job is None:  # the current model's held-out error
-            return None, _heldout_chi2(base.params, base.effects, validate_logs)
+            return None, _heldout_chi2(base.params, base.effects, validate_logs), None
         s, guess = job
         init = {**base.params, s.parameter: guess}
-        res = fit(logs, effects=[*base.effects, s.effect], free=f"{free},effects",
-                  init=init, staged=False, n_starts=1, seed=seed, workers=1)  # fmt: skip
-        # held-out error of this refit here, in the same thread: its compilation (a
-        # new model structure) then overlaps the other refits
-        return res, _heldout_chi2(res.params, res.effects, validate_logs)
+        try:
+            res = fit(logs, effects=[*base.effects, s.effect], free=f"{free},effects",
+                      init=init, staged=False, n_starts=1, seed=seed, workers=1)  # fmt: skip
+            if not math.isfinite(res.chi2):
+                return None, None, f"refit from {s.parameter} = {guess:g}: every start failed"
+            # held-out error of this refit here, in the same thread: its compilation (a
+            # new model structure) then overlaps the other refits
+            return res, _heldout_chi2(res.params, res.effects, validate_logs), None
+        except Exception as err:  # noqa: BLE001 -- one candidate's failure, reported
+            return None, None, f"refit from {s.parameter} = {guess:g}: {type(err).__name__}: {err}"
 
     # the refits are independent: one thread per core (_parallel.py)
     say(f"confirming {len(to_confirm)} candidates by {len(jobs)} refits")
     bests: dict[str, tuple[FitResult, float | None]] = {}
+    failures: dict[str, list[str]] = {}
     results = thread_map(refit, [None, *jobs], workers)
-    _, heldout_before = next(results)
-    for (s, _), (res, held) in zip(jobs, results):
-        if s.effect not in bests or res.chi2 < bests[s.effect][0].chi2:
+    _, heldout_before, _ = next(results)
+    for (s, _), (res, held, err) in zip(jobs, results):
+        if err is not None:
+            failures.setdefault(s.effect, []).append(err)
+        elif s.effect not in bests or res.chi2 < bests[s.effect][0].chi2:
             bests[s.effect] = (res, held)
+    passing = []
     for s in to_confirm:
         infos = EFFECTS[s.effect].param_infos()
+        if s.effect not in bests:
+            s.failure = "; ".join(failures.get(s.effect, ["no refit"]))
+            say(f"confirm {s.effect}: failed ({s.failure})")
+            continue
         best, heldout_after = bests[s.effect]
         bic1 = _bic(best.chi2, len(best.free), best.n_residuals, base.inflation)
         s.confirmed_chi2 = best.chi2
         s.delta_bic = bic1 - bic0
         s.fitted_params = {k: best.params[k] for k in infos}
+        s.fitted_stderr = {k: best.stderr[k] for k in infos if k in best.stderr}
         s.heldout_chi2_before = heldout_before
         s.heldout_chi2_after = heldout_after
         say(
@@ -251,8 +296,12 @@ def diagnose(
             or (s.heldout_chi2_after - s.heldout_chi2_before) * n_held / base.inflation
             < -bic_threshold
         )
-        if s.delta_bic < best_dbic and held_ok:
-            winner, winner_fit, best_dbic = s.effect, best, s.delta_bic
+        if s.delta_bic < -bic_threshold and held_ok:
+            passing.append((s, best))
+    winner, between, reasons = decide([s for s, _ in passing], bic_threshold)
+    winner_fit = next((f for s, f in passing if s.effect == winner), None)
+    if winner == "undecided":
+        say("undecided: " + "; ".join(reasons))
     confirmed = [s for s in ranking if s.delta_bic is not None]
     rest = [s for s in ranking if s.delta_bic is None]
     ranking = sorted(confirmed, key=lambda s: s.delta_bic) + rest
@@ -265,6 +314,83 @@ def diagnose(
         inflation=base.inflation,
         base_fit=base,
         winner_fit=winner_fit,
+        undecided_between=between,
+        reasons=reasons,
+    )
+
+
+def decide(
+    passing: Sequence[EffectScreen], bic_threshold: float = 10.0
+) -> tuple[str, list[str], list[str]]:
+    """The verdict from the candidates that passed both tests (BIC drop beyond
+    ``bic_threshold`` and the held-out check): ``(verdict, undecided_between, reasons)``.
+
+    ``"none"`` if none passed; the best one if it beats the runner-up by at least
+    ``bic_threshold``; else ``"undecided"`` between the two, with the evidence for each
+    and an experiment that would separate them."""
+    ranked = sorted(passing, key=lambda s: s.delta_bic)
+    if not ranked:
+        return "none", [], []
+    if len(ranked) == 1 or ranked[1].delta_bic - ranked[0].delta_bic >= bic_threshold:
+        return ranked[0].effect, [], []
+    a, b = ranked[:2]
+    reasons = [
+        f"{a.effect} and {b.effect} explain the data almost equally well: dBIC "
+        f"{a.delta_bic:.1f} and {b.delta_bic:.1f}, {b.delta_bic - a.delta_bic:.1f} apart "
+        f"(a decision needs {bic_threshold:g})",
+        *(_evidence(s) for s in (a, b)),
+        "to separate them: " + separating_experiment(a.effect, b.effect),
+    ]
+    return "undecided", [a.effect, b.effect], reasons
+
+
+def _evidence(s: EffectScreen) -> str:
+    held = ""
+    if s.heldout_chi2_before is not None and s.heldout_chi2_after is not None:
+        held = f", held-out chi2/N {s.heldout_chi2_before:.3g} -> {s.heldout_chi2_after:.3g}"
+    sizes = ", ".join(
+        f"{k} = {v:.3g}"
+        + (f" ± {s.fitted_stderr[k]:.2g}" if s.fitted_stderr and k in s.fitted_stderr else "")
+        for k, v in (s.fitted_params or {}).items()
+    )
+    return f"{s.effect}: dBIC {s.delta_bic:.1f}{held}; fitted {sizes}"
+
+
+#: Experiments that separate two candidate effects the data cannot tell apart.
+SEPARATING_EXPERIMENTS: dict[frozenset[str], str] = {
+    frozenset({"hose_compliance", "entrained_air"}): (
+        "slow runs at two loads (a light and a heavy one) and at two heights: air softens "
+        "the oil mostly at low pressure, hose compliance does not depend on pressure"
+    ),
+    frozenset({"motor_inertia", "input_delay"}): (
+        "steps of the duty from rest, of several sizes: a delay shifts the response by a "
+        "fixed time, a motor lag rounds it with a time constant"
+    ),
+    frozenset({"leakage", "motor_droop"}): (
+        "a long hold with the valve shut at a heavy load: only leakage lets the fork sink"
+    ),
+    frozenset({"mast_compliance", "hose_compliance"}): (
+        "the same slow run with a light and a heavy load: the mast's spring frequency falls "
+        "with the load mass, the hydraulic one with the oil volume (height)"
+    ),
+    frozenset({"mast_compliance", "entrained_air"}): (
+        "the same slow run with a light and a heavy load at two heights: the mast's spring "
+        "depends on the load mass, air on the pressure"
+    ),
+}
+
+
+def separating_experiment(a: str, b: str) -> str:
+    """A test run that would tell effect ``a`` from effect ``b``."""
+    if "stick_slip" in (a, b):
+        return (
+            "a very slow run (below 10 mm/s) with holds: breakaway friction makes the fork "
+            "stick and slip there, and barely matters at speed"
+        )
+    return SEPARATING_EXPERIMENTS.get(
+        frozenset({a, b}),
+        "a run in the regime where the two fitted models' predictions differ most (compare "
+        "their simulated speed on the logs, e.g. with `jaxlift fit --effects`)",
     )
 
 
@@ -287,7 +413,8 @@ def diagnose_iteratively(
     progress: Callable[[str], None] | None = None,
     **kwargs,
 ) -> list[Diagnosis]:
-    """Diagnose, add the winner, diagnose again, until the verdict is ``none``.
+    """Diagnose, add the winner, diagnose again, until the verdict is ``none`` (or
+    ``undecided``: then the last step says between which effects, and why).
 
     After each addition the effects added earlier are checked backwards: each is
     removed in turn and the model refitted; if the BIC grows by less than
@@ -303,7 +430,7 @@ def diagnose_iteratively(
         d = diagnose(logs, validate_logs, base_effects=effects, base=base, progress=progress,
                      bic_threshold=bic_threshold, **kwargs)  # fmt: skip
         steps.append(d)
-        if d.verdict == "none":
+        if d.verdict in ("none", "undecided"):  # nothing (more) to add
             break
         effects = [*effects, d.verdict]
         base = d.winner_fit

@@ -28,6 +28,11 @@ class StageResult:
     start_chi2: list[float]  # final chi2 of every start (inf: failed)
     best_start: int
 
+    @property
+    def failed_starts(self) -> int:
+        """Starts whose simulation failed (dropped: the best of the others is kept)."""
+        return sum(not math.isfinite(c) for c in self.start_chi2)
+
 
 @dataclasses.dataclass
 class FitResult:

@@ -86,10 +86,12 @@ def cmd_diagnose(args) -> int:
         seed=args.seed,
         progress=lambda line: print(line, flush=True),
     )
-    found = [d.verdict for d in steps if d.verdict != "none"]
+    found = [d.verdict for d in steps if d.verdict not in ("none", "undecided")]
     print(f"verdict: {steps[0].verdict}")
     if len(steps) > 1:
         print(f"missing effects, in order: {', '.join(found) or 'none'}")
+    if steps[-1].verdict == "undecided":
+        print("undecided: " + "; ".join(steps[-1].reasons))
     print(f"wrote {args.out}/diagnosis.json, report.md, report.html, figures/")
     return 0
 

@@ -20,3 +20,14 @@ SPEED_NOISE_POWER = 1e-7  # power of the band-limited speed-sensor noise [(m/s)^
 SIGMA_PRESSURE_PA = 5e4  # white noise of a pressure sensor, where a vehicle has one [Pa]
 SAMPLE_PERIOD_S = 0.01  # default logging / controller period, 100 Hz [s]
 OUTPUT_DT = SAMPLE_PERIOD_S  # output grid of closed-loop simulations [s]
+
+# The bottom end stop: a stiff one-sided contact on the carriage (docs/model.md,
+# Plant.end_stop_force), whose stiffness scales with the moving mass M (k = M w^2) and
+# whose damping grows with the depth (Hunt-Crossley), critical at rest. The fork rests
+# g / w^2 = 0.11 mm below 0 whatever the load (far inside the height sensor's noise) and
+# the contact's own mode stays at w for the explicit solver. The specification's fixed
+# k = 1e8 N/m, c = 5e5 N s/m make the unloaded carriage (100 kg) an overdamped mode at
+# c/M = 5000 1/s: Tsit5 then needs steps below 0.7 ms while the fork rests on the stop.
+# Same rest depth (the specification's 0.1-0.2 mm); 8 ms steps on the stop.
+END_STOP_OMEGA = 300.0  # natural frequency of the contact [rad/s]
+END_STOP_ZETA = 1.0  # damping ratio of the contact [-]

@@ -71,9 +71,11 @@ class Inputs(eqx.Module):
 
 
 def initial_height(log: Log) -> float:
-    """Mean height over the initial hold (``pwm == 0`` from the start, at most 2 s)."""
+    """Mean height over the initial hold (``pwm == 0`` from the start, at most 2 s), never
+    below the bottom end stop at 0 m: a fork resting on the stop reads 0 plus noise, and
+    the mean of that noise can be slightly negative (docs/model.md)."""
     moving = np.nonzero(log.pwm != 0)[0]
     n_hold = moving[0] if moving.size else log.n
     n_max = int(round(INITIAL_HOLD_MAX_S / log.sample_period)) + 1
     n = max(1, min(n_hold, n_max))
-    return float(np.mean(log.height_m[:n]))
+    return max(float(np.mean(log.height_m[:n])), 0.0)

@@ -15,7 +15,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .constants import MAST_HEIGHT_M, X_S1, X_S2, G
+from .constants import END_STOP_OMEGA, END_STOP_ZETA, MAST_HEIGHT_M, X_S1, X_S2, G
 from .params import param, param_infos
 
 _INF = math.inf
@@ -58,6 +58,8 @@ class Plant(eqx.Module):
     x_max: float = eqx.field(static=True, default=MAST_HEIGHT_M)  # m, full height
     w_blend: float = eqx.field(static=True, default=5e-3)  # m, blending width
     v_eps: float = eqx.field(static=True, default=1e-3)  # m/s, Coulomb smoothing
+    omega_es: float = eqx.field(static=True, default=END_STOP_OMEGA)  # rad/s, bottom stop
+    zeta_es: float = eqx.field(static=True, default=END_STOP_ZETA)  # -, bottom stop damping
 
     # -------------------------------------------------------------- stages
     def blend(self, x: Scalar) -> tuple[Scalar, Scalar]:
@@ -108,6 +110,25 @@ class Plant(eqx.Module):
     def friction(self, v: Scalar) -> Scalar:
         """Baseline friction force opposing motion [N] (docs/model.md item 6)."""
         return self.cf_con * jnp.tanh(v / self.v_eps) + self.cf_out * (self.cf_in * v) ** 5
+
+    def end_stop_force(self, x: Scalar, v: Scalar, m_load: Scalar) -> Scalar:
+        """Force of the bottom end stop on the carriage [N], upward: a stiff one-sided
+        contact below ``x = 0``, nothing above. With the depth ``delta = -x > 0``:
+
+            F = max(0, k delta (1 + lambda delta')),   k = M w^2,   lambda = 2 zeta w / g
+
+        a Hunt--Crossley contact (damping grows with the depth, so the force starts at 0
+        on touching instead of jumping with the impact speed) whose stiffness scales with
+        the moving mass ``M = m_load + m_st(x)``. At rest on the stop the depth is
+        ``g / w^2`` (0.11 mm) and the damping there ``2 zeta M w`` (critical). See
+        :data:`jaxlift.model.constants.END_STOP_OMEGA` for why this differs from the
+        specification's fixed spring-damper. The top of the mast has no stop: a run that
+        reaches it is reported as out of range."""
+        mass = m_load + self.stage_mass(x)
+        w = self.omega_es
+        depth = jnp.maximum(-x, 0.0)
+        push = mass * w * w * depth * (1.0 - 2.0 * self.zeta_es * w * v / G)
+        return jnp.maximum(push, 0.0)
 
     def static_pressure(self, x: Scalar, m_load: Scalar) -> Scalar:
         """Pressure holding the fork at rest, ``M(x) g r / A(x)`` [Pa]."""

@@ -83,8 +83,8 @@ class AbstractSolution(eqx.Module):
             t = float(self.ts[bad[0]]) if bad.size else float("nan")
             raise SimulationError(
                 f"{what}: the fork left the mast's range [0, x_max] at t = {t:.2f} s "
-                f"(height {h[bad[0]] if bad.size else float('nan'):.3f} m); the end stops are "
-                f"not modelled -- {self.out_of_range_hint}"
+                f"(height {h[bad[0]] if bad.size else float('nan'):.3f} m); the top of the mast "
+                f"has no end stop in the model -- {self.out_of_range_hint}"
             )
         return self
 

@@ -83,7 +83,11 @@ def plant_signals_and_derivative(
     # friction, fork and load
     f_fric = plant.friction(v)
     f_fric = f_fric + sum((e.extra_friction(plant, z, sig) for e, z in zip(effects, zs)), 0.0)
-    forces = plant.area(x) * p / plant.ratio - f_fric - plant.d * v
+    # the bottom end stop acts on the carriage (under mast_compliance too: ``forces``
+    # are the forces on the carriage besides gravity and the load)
+    forces = (
+        plant.area(x) * p / plant.ratio - f_fric - plant.d * v + plant.end_stop_force(x, v, m_load)
+    )
     sig = sig._replace(forces=forces)
     a = rigid_acceleration(plant, sig)
     for e, z in zip(effects, zs):
@@ -102,8 +106,10 @@ def lift_vector_field(t, y, args):
 def initial_state(
     plant: Plant, effects: tuple[AbstractEffect, ...], inputs: Inputs
 ) -> Float[Array, " S"]:
-    """At rest at ``inputs.x0``, pressure at static equilibrium (docs/model.md)."""
-    x0 = inputs.x0
+    """At rest at ``inputs.x0`` (never below the bottom end stop at 0 m: a fit's
+    initial-height offset cannot put the start there), pressure at static equilibrium
+    (docs/model.md)."""
+    x0 = jnp.maximum(inputs.x0, 0.0)
     u0, m0 = inputs.at(inputs.ts[0])
     p0 = plant.static_pressure(x0, m0)
     y_base = jnp.stack([x0, jnp.zeros(()), p0])

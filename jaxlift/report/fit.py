@@ -14,7 +14,6 @@ import numpy as np
 from ..analysis.oscillation import oscillation_table, zoom_windows
 from ..analysis.regimes import error_table, segment_log
 from ..calibrate.result import FitResult
-from ..model.build import all_param_infos, make_effects
 from ..model.log import Log
 from ..model.params import save_params_json
 from .analysis_plots import plot_error_bars, plot_oscillations_vs_height, plot_residuals
@@ -42,7 +41,7 @@ def fit_report(
         result.params,
         comment=f"calibrated by jaxlift fit; effects: {', '.join(result.effects) or 'none'}",
     )
-    infos = all_param_infos(make_effects(result.effects))
+    infos = result.model.param_infos()
     logs = [*fit_logs, *validate_logs]
     rep = Report("jaxlift calibration report")
     rep.text(
@@ -51,6 +50,12 @@ def fit_report(
         f"{', '.join(f'`{lg.name}`' for lg in validate_logs) or 'none'}. "
         f"Free parameters: {', '.join(result.free)}. "
         f"Converged: **{'yes' if result.converged else 'NO'}**."
+        + "".join(
+            f" Stage {k + 1}: {s.failed_starts} of {len(s.start_chi2)} starts failed "
+            "(their simulations did not solve) and were dropped."
+            for k, s in enumerate(result.stages)
+            if s.failed_starts
+        )
     )
     rep.heading("Error before and after estimation")
     rows = []

@@ -109,11 +109,16 @@ def run_diagnose(
         error_rows.append(row)
     plot_error_steps(error_rows, figs / "error_by_step.png")
     first = steps[0]
-    verdicts = [d.verdict for d in steps if d.verdict != "none"]
+    verdicts = [d.verdict for d in steps if d.verdict not in ("none", "undecided")]
     dropped = [name for d in steps for name in d.dropped]
+    last = steps[-1]
     data = {
         "verdict": first.verdict,
         "verdicts": verdicts,
+        # how the iteration ended: "none" (nothing more is missing) or "undecided"
+        "final_verdict": last.verdict,
+        "undecided_between": last.undecided_between,
+        "reasons": last.reasons,
         "dropped": dropped,
         "ranking": first.as_dict()["ranking"],
         "steps": [d.as_dict() for d in steps],
@@ -128,6 +133,13 @@ def run_diagnose(
         f"Fitted logs: {', '.join(f'`{lg.name}`' for lg in logs)}; held out: "
         f"{', '.join(f'`{lg.name}`' for lg in validate_logs) or 'none'}. "
         f"Missing from the baseline model: {missing}."
+        + (
+            f" Then **undecided** between {' and '.join(last.undecided_between) or '—'}: "
+            + "; ".join(last.reasons)
+            + "."
+            if last.verdict == "undecided"
+            else ""
+        )
     )
     rep.heading("The error falling, step by step")
     rep.table(error_rows, caption="chi2 per sample (1 = sensor noise level) of each model.")

@@ -131,6 +131,7 @@ def run_fit(
                 "num_steps": s.num_steps,
                 "wall_s": s.wall_s,
                 "start_chi2": s.start_chi2,
+                "failed_starts": s.failed_starts,
             }
             for s in result.stages
         ],

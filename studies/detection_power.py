@@ -1,0 +1,254 @@
+"""Detection-power study of ``jaxlift diagnose`` on logs it was never tuned on.
+
+Every case comes from the independent generator (``studies/detection_generator.py``:
+NumPy/SciPy, written from ``docs/model.md``, no jaxlift code) and is diagnosed by the
+very call a user makes, ``jaxlift diagnose fit_1.csv fit_2.csv --validate
+validation.csv --out DIR`` (from nominal values, iterating until ``none`` or
+``undecided``). Resumable: a case whose ``result.json`` exists is not run again, so the
+study can run across several sittings::
+
+    python studies/detection_power.py run --data runs/detection/data --out runs/detection
+    python studies/detection_power.py report --out runs/detection --to studies/results
+
+``run`` generates the cases it needs (``--cases N``: the first N of the seeded list;
+``--only case_007``), ``report`` writes ``detection_power.md``, ``results.csv`` and the
+figures (confusion matrix, identification rate against effect size per effect).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import csv
+import io
+import json
+import pathlib
+import sys
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)  # a program's start: the place to do it
+
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")  # a script writing PNGs (jaxlift itself never switches the backend)
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+import detection_generator as gen  # noqa: E402
+
+from jaxlift.cli import main as jaxlift_main  # noqa: E402
+
+EFFECTS = gen.EFFECTS
+
+
+def run_case(spec: dict, data_dir: pathlib.Path, out_dir: pathlib.Path) -> dict:
+    """Generate (if needed) and diagnose one case; write and return ``result.json``."""
+    gen.write_case(spec, data_dir, verbose=False)
+    case = data_dir / spec["case_id"]
+    res_dir = out_dir / spec["case_id"]
+    res_dir.mkdir(parents=True, exist_ok=True)
+    argv = [
+        "diagnose", str(case / "fit_1.csv"), str(case / "fit_2.csv"),
+        "--validate", str(case / "validation.csv"), "--out", str(res_dir / "diagnosis"),
+    ]  # fmt: skip
+    out, err = io.StringIO(), io.StringIO()
+    t0 = time.perf_counter()
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            rc = jaxlift_main(argv)
+        crash = None
+    except Exception as exc:  # noqa: BLE001 -- a crash is a result of the study
+        rc, crash = -1, f"{type(exc).__name__}: {exc}"
+    wall = time.perf_counter() - t0
+    result = {
+        "case_id": spec["case_id"],
+        "kind": spec["kind"],
+        "hidden": spec["hidden_effects"],
+        "sizes": spec["effect_sizes"],
+        "exit_code": rc,
+        "crash": crash,
+        "stderr_tail": err.getvalue()[-2000:],
+        "wall_s": wall,
+    }
+    diag = res_dir / "diagnosis" / "diagnosis.json"
+    if rc == 0 and diag.exists():
+        d = json.loads(diag.read_text())
+        kept = [v for v in d["verdicts"] if v not in d["dropped"]]
+        result.update(
+            found=kept,
+            final_verdict=d.get("final_verdict", "none"),
+            undecided_between=d.get("undecided_between", []),
+            baseline_chi2n=d["steps"][0]["base_chi2"] / d["steps"][0]["n_residuals"],
+            errors_by_step=d["errors_by_step"],
+        )
+    (res_dir / "result.json").write_text(json.dumps(result, indent=1))
+    return result
+
+
+def outcome(r: dict) -> str:
+    """``correct`` / ``undecided`` / ``wrong`` / ``crash`` for one result."""
+    if r.get("exit_code") != 0 or "found" not in r:
+        return "crash"
+    hidden, found = set(r["hidden"]), set(r["found"])
+    if r.get("final_verdict") == "undecided" and found <= hidden:
+        return "undecided"
+    return "correct" if found == hidden else "wrong"
+
+
+def cmd_run(args) -> int:
+    data, out = pathlib.Path(args.data), pathlib.Path(args.out)
+    cases = gen.make_cases(seed=args.seed)
+    if args.only:
+        cases = [c for c in cases if c["case_id"] in args.only]
+    else:
+        cases = cases[: args.cases]
+    from tqdm.auto import tqdm
+
+    for spec in tqdm(cases, desc="detection study", unit="case"):
+        if (out / spec["case_id"] / "result.json").exists():
+            continue
+        r = run_case(spec, data, out)
+        tqdm.write(
+            f"{spec['case_id']}: hidden {'+'.join(r['hidden']) or 'none'} -> "
+            f"{'+'.join(r.get('found', [])) or r.get('final_verdict', r.get('crash'))} "
+            f"[{outcome(r)}] {r['wall_s']:.0f} s"
+        )
+    return 0
+
+
+def _load(out: pathlib.Path) -> list[dict]:
+    return [json.loads(p.read_text()) for p in sorted(out.glob("case_*/result.json"))]
+
+
+def cmd_report(args) -> int:
+    out, to = pathlib.Path(args.out), pathlib.Path(args.to)
+    to.mkdir(parents=True, exist_ok=True)
+    results = _load(out)
+    if not results:
+        print(f"no results under {out}", file=sys.stderr)
+        return 1
+    with open(to / "results.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["case_id", "kind", "hidden", "sizes", "found", "final", "outcome",
+                    "baseline_chi2n", "wall_s"])  # fmt: skip
+        for r in results:
+            w.writerow([
+                r["case_id"], r["kind"], "+".join(r["hidden"]) or "none",
+                json.dumps(r["sizes"]), "+".join(r.get("found", [])) or "none",
+                r.get("final_verdict", ""), outcome(r),
+                f"{r.get('baseline_chi2n', float('nan')):.4g}", f"{r['wall_s']:.1f}",
+            ])  # fmt: skip
+    labels = ["none", *EFFECTS, "pair", "crash"]
+    conf = np.zeros((len(labels), len(labels)), dtype=int)
+    for r in results:
+        hidden = r["hidden"][0] if len(r["hidden"]) == 1 else ("pair" if r["hidden"] else "none")
+        found = r.get("found", [])
+        if outcome(r) == "crash":
+            col = "crash"
+        elif len(found) == 1:
+            col = found[0]
+        else:
+            col = "pair" if found else "none"
+        conf[labels.index(hidden), labels.index(col)] += 1
+    fig, ax = plt.subplots(figsize=(9, 7.5))
+    ax.imshow(conf, cmap="Blues")
+    ax.set_xticks(range(len(labels)), labels, rotation=60, ha="right")
+    ax.set_yticks(range(len(labels)), labels)
+    ax.set_xlabel("found (effects kept at the end)")
+    ax.set_ylabel("hidden")
+    for i in range(len(labels)):
+        for j in range(len(labels)):
+            if conf[i, j]:
+                ax.text(j, i, str(conf[i, j]), ha="center", va="center", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(to / "confusion.png", dpi=90)
+    plt.close(fig)
+
+    lines = ["# Detection-power study: results", ""]
+    n = len(results)
+    kinds = {k: [r for r in results if r["kind"] == k] for k in ("null", "single", "pair")}
+    times = sorted(r["wall_s"] for r in results)
+    lines.append(
+        f"{n} cases diagnosed (of the seeded list of 100; the study is resumable). "
+        f"Median time per case {times[len(times) // 2]:.0f} s "
+        f"(min {times[0]:.0f}, max {times[-1]:.0f}) on this machine."
+    )
+    lines.append("")
+    lines.append("| case kind | cases | correct | undecided | wrong | crash |")
+    lines.append("|---|---:|---:|---:|---:|---:|")
+    for k, rs in kinds.items():
+        c = [outcome(r) for r in rs]
+        lines.append(
+            f"| {k} | {len(rs)} | {c.count('correct')} | {c.count('undecided')} | "
+            f"{c.count('wrong')} | {c.count('crash')} |"
+        )
+    single = kinds["single"]
+    visible = [r for r in single if r.get("baseline_chi2n", 0) >= 1.5]
+    if visible:
+        c = [outcome(r) for r in visible]
+        lines += [
+            "",
+            f"Single effects whose baseline misfit is at least 1.5x the noise floor "
+            f"(chi2/N >= 1.5): {len(visible)} cases, correct {c.count('correct')} "
+            f"({c.count('correct') / len(visible):.0%}), wrong-but-confident "
+            f"{c.count('wrong')} ({c.count('wrong') / len(visible):.0%}).",
+        ]
+    nulls = kinds["null"]
+    if nulls:
+        fa = sum(outcome(r) != "correct" for r in nulls)
+        lines += ["", f"False alarms on null cases: {fa} of {len(nulls)}."]
+    lines += ["", "![confusion matrix](confusion.png)", ""]
+    for e in EFFECTS:
+        rs = [r for r in single if r["hidden"] == [e]]
+        if not rs:
+            continue
+        fig, ax = plt.subplots(figsize=(5, 3))
+        sizes = [r["sizes"][e] for r in rs]
+        ok = [outcome(r) == "correct" for r in rs]
+        ax.scatter(sizes, ok, c=["tab:green" if o else "tab:red" for o in ok])
+        ax.set_xscale("log")
+        ax.set_yticks([0, 1], ["missed / wrong", "found"])
+        ax.set_xlabel(f"size of {e}")
+        ax.set_title(e)
+        fig.tight_layout()
+        fig.savefig(to / f"rate_{e}.png", dpi=80)
+        plt.close(fig)
+        found_sizes = sorted(s for s, o in zip(sizes, ok) if o)
+        lines.append(
+            f"- `{e}`: {sum(ok)} of {len(rs)} found; smallest size found {found_sizes[0]:.3g}"
+            if found_sizes
+            else f"- `{e}`: 0 of {len(rs)} found"
+        )
+        lines.append(f"  ![{e}](rate_{e}.png)")
+    crashes = [r for r in results if outcome(r) == "crash"]
+    if crashes:
+        lines += ["", "Crashes:", *(f"- {r['case_id']}: {r['crash'] or r['stderr_tail'][-300:]}"
+                                    for r in crashes)]  # fmt: skip
+    (to / "detection_power.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run", help="generate and diagnose cases (resumable)")
+    r.add_argument("--data", default="runs/detection/data", help="generated logs")
+    r.add_argument("--out", default="runs/detection", help="results")
+    r.add_argument("--seed", type=int, default=0, help="seed of the case list")
+    r.add_argument("--cases", type=int, default=100, help="the first N cases of the list")
+    r.add_argument("--only", nargs="*", help="case ids to run")
+    r.set_defaults(func=cmd_run)
+    q = sub.add_parser("report", help="summarise the results")
+    q.add_argument("--out", default="runs/detection", help="results of `run`")
+    q.add_argument("--to", default="studies/results", help="where the report goes")
+    q.set_defaults(func=cmd_report)
+    args = p.parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
