@@ -152,3 +152,53 @@ def test_overflowing_jacobian_rejects_the_step():
     res = levenberg_marquardt(fn, bad_jac, np.array([0.1]), gtol=1e-12)
     assert res.converged
     np.testing.assert_allclose(res.theta, [0.8], rtol=1e-6)
+
+
+def _banana(scale=1.0):
+    """A curved valley ``theta1 = theta0**2`` that the data pin down across (standard
+    error 0.1 of ``theta1 - theta0**2``) and barely along (standard error ~10), plus
+    2000 residuals of unit noise the parameters cannot change: chi2 per degree of
+    freedom ~1 (x scale**2), the noise floor. From (-1.5, 0) LM crawls along the
+    valley: after 6 trials the Gauss--Newton decrease left (0.022) is above the plain
+    rule's 0.01 x s^2, all of it along the valley."""
+    noise = np.random.default_rng(0).standard_normal(2000)
+
+    def res(th):
+        return scale * np.concatenate([[10 * (th[1] - th[0] ** 2), 0.1 * (1 - th[0])], noise])
+
+    def jac(th):
+        J = np.zeros((2002, 2))
+        J[0] = [-20 * th[0], 10]
+        J[1] = [-0.1, 0]
+        return res(th), scale * J
+
+    return res, jac
+
+
+def test_a_fit_at_the_noise_floor_converges_along_an_undetermined_ridge():
+    res, jac = _banana()
+    out = levenberg_marquardt(res, jac, np.array([-1.5, 0.0]), max_iter=6, noise_floor=1.5)
+    assert out.converged, out.message
+    assert "undetermined" in out.message and len(out.undetermined) == 1
+    th0 = out.theta[0]
+    tangent = np.array([1.0, 2 * th0]) / np.hypot(1.0, 2 * th0)  # along the valley
+    assert abs(abs(out.undetermined[0] @ tangent) - 1) < 1e-2
+    # the determined direction is converged: within a tenth of its standard error
+    assert abs(out.theta[1] - th0**2) < 0.01
+    assert out.gn_decrease > 0.01  # the plain rule alone would have said "not converged"
+
+
+def test_the_ridge_rule_needs_the_noise_floor_and_a_ridge():
+    res, jac = _banana(scale=3.0)  # chi2 per dof ~9: not the noise floor
+    out = levenberg_marquardt(res, jac, np.array([-1.5, 0.0]), max_iter=6, noise_floor=1.5)
+    assert not out.converged and out.message == "iteration limit reached"
+    # well determined in every direction: the iteration limit is still a failure
+    A = np.random.default_rng(1).normal(size=(50, 3))
+    b = A @ np.array([1.0, -2.0, 0.5])
+    out = levenberg_marquardt(
+        lambda th: np.exp(A @ th) - np.exp(b),
+        lambda th: (np.exp(A @ th) - np.exp(b), np.exp(A @ th)[:, None] * A),
+        np.zeros(3),
+        max_iter=2,
+    )
+    assert not out.converged and out.undetermined == []

@@ -8,7 +8,7 @@ import pytest
 
 import jaxlift as jl
 from jaxlift.calibrate import diagnose as dg
-from jaxlift.calibrate.diagnose import EffectScreen, decide, separating_experiment
+from jaxlift.calibrate.diagnose import EffectScreen, decide, refit_starts, separating_experiment
 
 
 def _screen(effect, dbic, before=2.0, after=1.1):
@@ -78,3 +78,30 @@ def test_a_screen_that_fails_is_reported_and_the_others_go_on(short_fit, monkeyp
     assert by["hose_compliance"].failure is None and math.isfinite(by["hose_compliance"].z)
     assert ranking[-1].effect == "leakage"  # failures rank last
     assert "failure" in by["leakage"].as_dict()
+
+
+def test_every_effect_declares_the_range_a_vehicle_can_have():
+    for name, cls in jl.EFFECTS.items():
+        info = cls.param_infos()[dg.switch_parameter(name)]
+        assert info.typical is not None and info.typical_why, name
+        lo, hi = info.typical
+        assert info.nesting < lo < hi <= info.upper, name
+        assert hi / lo >= 10, name  # a range, not a point
+
+
+@pytest.mark.parametrize("effect", list(jl.EFFECTS))
+def test_refit_starts_cover_the_typical_range(effect):
+    par = dg.switch_parameter(effect)
+    lo, hi = jl.EFFECTS[effect].param_infos()[par].typical
+    starts = refit_starts(effect, screen_estimate=math.sqrt(lo * hi))
+    values = sorted(s[par] for s in starts)
+    assert values[0] == pytest.approx(lo) and values[-1] == pytest.approx(hi)
+    # from a huge or a useless screen estimate too: kept inside the range
+    assert lo <= refit_starts(effect, 1e30)[0][par] <= hi
+    assert lo <= refit_starts(effect, float("nan"))[0][par] <= hi
+    # two-parameter effects: the second parameter spans its range as well
+    for name, info in jl.EFFECTS[effect].param_infos().items():
+        if name != par and info.typical:
+            seconds = sorted(s[name] for s in starts if name in s)
+            assert seconds[0] == pytest.approx(info.typical[0])
+            assert seconds[-1] == pytest.approx(info.typical[1])

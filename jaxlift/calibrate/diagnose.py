@@ -229,32 +229,28 @@ def diagnose(
     n_held = sum(e.n_residuals for e in make_experiments(validate_logs))
     bic0 = _bic(base.chi2, len(base.free), base.n_residuals, base.inflation)
     to_confirm = [s for s in ranking if s.z > z_threshold][:n_confirm]  # None: all
-    guesses = {}  # start values of each candidate's switch parameter
-    for s in to_confirm:
-        scale = EFFECTS[s.effect].param_infos()[s.parameter].scale or 1.0
-        # start from the screen's Gauss-Newton estimate (kept physically sized) and from
-        # the typical size: the score is there, the path may not be
-        g = [min(max(s.predicted_value, 0.1 * scale), 10 * scale), scale]
-        guesses[s.effect] = g[:1] if abs(g[0] / g[1] - 1) < 0.3 else g
+    guesses = {s.effect: refit_starts(s.effect, s.predicted_value) for s in to_confirm}
     # every candidate's first start before any second one: two threads on the two
     # starts of one candidate would wait on the same compilation
-    jobs = [(s, g[k]) for k in range(2) for s in to_confirm if len(g := guesses[s.effect]) > k]
+    most = max((len(g) for g in guesses.values()), default=0)
+    jobs = [(s, g[k]) for k in range(most) for s in to_confirm if len(g := guesses[s.effect]) > k]
 
     def refit(job) -> tuple[FitResult | None, float | None, str | None]:
         if job is None:  # the current model's held-out error
             return None, _heldout_chi2(base.params, base.effects, validate_logs), None
         s, guess = job
-        init = {**base.params, s.parameter: guess}
+        init = {**base.params, **guess}
+        where = ", ".join(f"{k} = {v:g}" for k, v in guess.items())
         try:
             res = fit(logs, effects=[*base.effects, s.effect], free=f"{free},effects",
                       init=init, staged=False, n_starts=1, seed=seed, workers=1)  # fmt: skip
             if not math.isfinite(res.chi2):
-                return None, None, f"refit from {s.parameter} = {guess:g}: every start failed"
+                return None, None, f"refit from {where}: every start failed"
             # held-out error of this refit here, in the same thread: its compilation (a
             # new model structure) then overlaps the other refits
             return res, _heldout_chi2(res.params, res.effects, validate_logs), None
         except Exception as err:  # noqa: BLE001 -- one candidate's failure, reported
-            return None, None, f"refit from {s.parameter} = {guess:g}: {type(err).__name__}: {err}"
+            return None, None, f"refit from {where}: {type(err).__name__}: {err}"
 
     # the refits are independent: one thread per core (_parallel.py)
     say(f"confirming {len(to_confirm)} candidates by {len(jobs)} refits")
@@ -317,6 +313,35 @@ def diagnose(
         undecided_between=between,
         reasons=reasons,
     )
+
+
+def refit_starts(effect: str, screen_estimate: float) -> list[dict[str, float]]:
+    """Starting values of the confirmation refits of ``effect`` (its parameters only):
+    the screen's Gauss--Newton estimate of the switch parameter, kept inside the
+    effect's typical range (:attr:`~jaxlift.ParamInfo.typical`: the sizes a real
+    vehicle can have), then a log-spaced grid over that range (low end, geometric
+    middle, high end), each grid point paired with the same position in the range of
+    the effect's second parameter where it has one (``v_s``, ``c_s``). A grid point
+    within a factor 2 of an earlier start is left out. The score says where the optimum
+    is near the nesting value; the grid lets a refit reach it from anywhere in the
+    range, whatever the true size."""
+    infos = EFFECTS[effect].param_infos()
+    par = switch_parameter(effect)
+    info = infos[par]
+    scale = info.scale or 1.0
+    lo, hi = info.typical or (0.1 * scale, 10.0 * scale)
+    est = screen_estimate if math.isfinite(screen_estimate) else math.sqrt(lo * hi)
+    starts = [{par: min(max(est, lo), hi)}]
+    seconds = [(n, i.typical) for n, i in infos.items() if n != par and i.typical]
+    for q in (0.0, 0.5, 1.0):
+        v = math.exp(math.log(lo) + q * (math.log(hi) - math.log(lo)))
+        if any(abs(math.log(v / st[par])) < math.log(2.0) for st in starts):
+            continue
+        st = {par: v}
+        for name, (a, b) in seconds:
+            st[name] = math.exp(math.log(a) + q * (math.log(b) - math.log(a)))
+        starts.append(st)
+    return starts
 
 
 def decide(

@@ -233,6 +233,12 @@ def fit(
             run = _escape_log_traps(problem, runs[best], names, free_all, active, max_steps, gtol)
             chi2s[best] = run.chi2
             theta_best, ok, msg = run.theta, run.converged, run.message
+            if run.undetermined:
+                labels = [*names, *(f"x0 offset of {e.name}" for e in experiments)]
+                msg += "; undetermined: " + "; ".join(
+                    describe_direction(v, labels, [infos_all.get(n) for n in labels])
+                    for v in run.undetermined
+                )
             nsteps = run.n_iter
             final = run
         else:
@@ -317,11 +323,33 @@ def _escape_log_traps(problem, run, names, free_all, active, max_steps, gtol):
         theta[k] = float(to_unconstrained(info, inside_bounds(info, ref)))
         retry = levenberg_marquardt(
             problem.residuals_at, problem.jacobian_at, theta, active,
-            max_iter=max_steps, gtol=gtol,
+            max_iter=max_steps, gtol=gtol, noise_floor=NOISE_FLOOR,
         )  # fmt: skip
         if np.isfinite(retry.chi2) and retry.chi2 < run.chi2:
             run = retry
     return run
+
+
+#: chi2 per degree of freedom up to which a fit counts as at the sensor-noise floor
+#: (residuals are scaled by the sensor noise: ~1 when the model fits): there, a fit
+#: whose remaining Gauss--Newton decrease lies only along directions the data do not
+#: determine has converged (see :mod:`jaxlift.calibrate.lm`).
+NOISE_FLOOR = 1.5
+
+
+def describe_direction(v, labels, infos) -> str:
+    """A direction in ``theta`` as a combination of the parameters' transforms, largest
+    components first (e.g. ``+0.98 log(cf_in) -0.20 log(cf_out)``)."""
+    order = np.argsort(-np.abs(v))
+    terms = []
+    for k in order[:3]:
+        if abs(v[k]) < 0.05:
+            break
+        info = infos[k]
+        t = info.transform if info is not None else "identity"
+        name = labels[k] if t == "identity" else f"{t}({labels[k]})"
+        terms.append(f"{v[k]:+.2f} {name}")
+    return " ".join(terms)
 
 
 def _lm_starts(problem, starts, active, max_steps, gtol, progress, desc, workers=None):
@@ -331,7 +359,7 @@ def _lm_starts(problem, starts, active, max_steps, gtol, progress, desc, workers
     def run(th):
         return levenberg_marquardt(
             problem.residuals_at, problem.jacobian_at, th, active, max_iter=max_steps,
-            gtol=gtol,
+            gtol=gtol, noise_floor=NOISE_FLOOR,
         )  # fmt: skip
 
     runs = []

@@ -18,7 +18,15 @@ steps after the optimum has been reached. This driver
 - stops on a statistical criterion: the decrease of chi2 that a full Gauss--Newton
   step would still bring, ``gᵀ (JᵀJ)⁺ g``, is below ``gtol · s²`` (``s²`` = chi2 per
   degree of freedom). The remaining step is then below ``sqrt(gtol)`` standard
-  errors in every direction, well inside the parameters' uncertainty.
+  errors in every direction, well inside the parameters' uncertainty;
+- does not let directions the data do not determine defeat that rule: when the
+  iterations run out (or no step lowers chi2) with the fit at the noise floor
+  (``s² <= noise_floor``, for residuals scaled by their noise as the fit's are) and
+  the remaining Gauss--Newton decrease lies only along *undetermined* directions (a
+  standard error above ``se_max`` in ``theta``: more than ~50 % of the parameter
+  combination, e.g. the ``cf_in``/``cf_out`` ridge of the fifth-power friction law),
+  the fit has converged; the result names those directions
+  (:attr:`LMResult.undetermined`) instead of reporting an iteration limit.
 
 ``fit(..., solver=OptimistixLM())`` still runs optimistix's solver (and
 ``OptimistixLM(vectorize=True)`` its ``vmap`` over starting points).
@@ -45,6 +53,9 @@ class LMResult:
         n_iter: accepted steps; ``n_eval``: residual evaluations at trial points;
         n_jac: Jacobian evaluations.
         gn_decrease: ``gᵀ (JᵀJ)⁺ g`` at ``theta`` (chi2 units).
+        undetermined: directions (unit vectors over the ``active`` parameters, in
+            ``theta``) that the data do not determine and along which the remaining
+            Gauss--Newton decrease lies, when convergence was declared on them.
     """
 
     theta: np.ndarray
@@ -57,6 +68,29 @@ class LMResult:
     n_eval: int
     n_jac: int
     gn_decrease: float
+    undetermined: list[np.ndarray] = dataclasses.field(default_factory=list)
+
+
+def _undetermined_split(
+    A: np.ndarray, g: np.ndarray, d: np.ndarray, s2: float, se_max: float
+) -> tuple[float, list[np.ndarray]]:
+    """The Gauss--Newton decrease along the directions the data determine, and the
+    directions they do not (``theta`` units; standard error above ``se_max``)."""
+    try:
+        w, V = np.linalg.eigh(A)
+    except np.linalg.LinAlgError:
+        return np.inf, []
+    keep = w > max(float(w.max(initial=0.0)), 1e-300) * 1e-12
+    proj = V.T @ g
+    determined, loose = 0.0, []
+    for k in np.nonzero(keep)[0]:
+        direction = V[:, k] / d  # a unit move along V_k in scaled coordinates, in theta
+        se = np.sqrt(s2 / w[k]) * np.linalg.norm(direction)
+        if se > se_max:
+            loose.append(direction / np.linalg.norm(direction))
+        else:
+            determined += proj[k] ** 2 / w[k]
+    return float(determined), loose
 
 
 def _gn_decrease(A: np.ndarray, g: np.ndarray) -> float:
@@ -80,6 +114,8 @@ def levenberg_marquardt(
     gtol: float = 1e-2,
     max_chi2: float = np.inf,
     scaling: str = "identity",
+    noise_floor: float | None = None,
+    se_max: float = 0.5,
     callback: Callable[[int, float], None] | None = None,
 ) -> LMResult:
     """Minimise ``sum(residuals(theta)**2)`` over ``theta[active]``.
@@ -99,6 +135,12 @@ def levenberg_marquardt(
             ``"marquardt"`` (``D = diag(JᵀJ)``, running maximum; scale-invariant, but it
             lets weakly determined parameters take huge steps: on the rough chi2 surface
             of stick-slip it stalled at chi2/N 4.0 where the isotropic damping reached 1.2).
+        noise_floor, se_max: when the iterations run out or stagnate with chi2 per
+            degree of freedom at most ``noise_floor`` and the remaining decrease only
+            along directions with a standard error above ``se_max`` (``theta`` units),
+            the fit has converged along its determined directions (module docstring).
+            Only for residuals scaled by their noise (chi2 per degree of freedom ~1 when
+            the model fits): None (default) switches the rule off.
         callback: called with (trial number, current chi2) after each trial.
     """
     theta = np.array(theta0, dtype=np.float64)
@@ -109,8 +151,20 @@ def levenberg_marquardt(
     chi2 = float(r @ r)
     dof = max(r.size - idx.size, 1)
 
-    def done(converged: bool, message: str, dec: float = np.nan) -> LMResult:
-        return LMResult(theta, chi2, r, J, converged, message, n_iter, n_eval, n_jac, dec)
+    def done(converged: bool, message: str, dec: float = np.nan, loose=()) -> LMResult:
+        return LMResult(
+            theta, chi2, r, J, converged, message, n_iter, n_eval, n_jac, dec, list(loose)
+        )
+
+    def on_a_ridge(dec: float) -> LMResult | None:
+        """Converged but for directions the data do not determine (at the noise floor)."""
+        s2 = chi2 / dof
+        if noise_floor is None or s2 > noise_floor:
+            return None
+        determined, loose = _undetermined_split(As, gs, d, s2, se_max)
+        if loose and determined <= gtol * s2:
+            return done(True, "converged (the rest is along undetermined directions)", dec, loose)
+        return None
 
     if not (np.isfinite(chi2) and chi2 < max_chi2):
         return done(False, "the model could not be evaluated at the start")
@@ -179,7 +233,7 @@ def levenberg_marquardt(
             s2 = chi2 / dof
             if dec <= 100 * gtol * s2:
                 return done(True, "converged (no further decrease within integrator noise)", dec)
-            return done(False, "stagnated: no step lowers chi2", dec)
+            return on_a_ridge(dec) or done(False, "stagnated: no step lowers chi2", dec)
     if dec <= gtol * chi2 / dof:
         return done(True, "converged", dec)
-    return done(False, "iteration limit reached", dec)
+    return on_a_ridge(dec) or done(False, "iteration limit reached", dec)

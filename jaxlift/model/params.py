@@ -49,6 +49,10 @@ class ParamInfo:
             finite and ``>= 0``, else ``"logit"`` where both bounds are finite.
         spread: multi-start fits draw starting points within a factor ``spread`` of the
             current estimate (log-uniform).
+        typical: ``(low, high)``: the sizes a real vehicle can have (an effect's
+            parameters), in ``unit``; the diagnosis's confirmation refits start from a
+            grid over it. ``None`` where no such range is declared.
+        typical_why: where the range comes from.
     """
 
     name: str
@@ -61,6 +65,8 @@ class ParamInfo:
     scale: float | None = None
     transform: str = ""
     spread: float = 1.5
+    typical: tuple[float, float] | None = None
+    typical_why: str = ""
 
     def __post_init__(self):
         if not self.transform:
@@ -75,6 +81,13 @@ class ParamInfo:
             object.__setattr__(self, "transform", t)
         if self.transform not in ("log", "logit", "identity"):
             raise ParameterError(f"parameter {self.name!r}: unknown transform {self.transform!r}")
+        if self.typical is not None and not (
+            self.lower <= self.typical[0] < self.typical[1] <= self.upper
+        ):
+            raise ParameterError(
+                f"parameter {self.name!r}: typical range {self.typical} not inside its "
+                f"bounds [{self.lower}, {self.upper}]"
+            )
         if not self.lower <= self.nominal <= self.upper:
             raise ParameterError(
                 f"parameter {self.name!r}: nominal value {self.nominal} outside its bounds "
@@ -109,6 +122,8 @@ def param(
     transform: str = "",
     spread: float = 1.5,
     name: str | None = None,
+    typical: tuple[float, float] | None = None,
+    typical_why: str = "",
 ):
     """Declare a physical-parameter field of an ``eqx.Module``.
 
@@ -117,7 +132,7 @@ def param(
     """
     info = dict(nominal=nominal, unit=unit, lower=lower, upper=upper)
     info.update(description=description, nesting=nesting, scale=scale, name=name)
-    info.update(transform=transform, spread=spread)
+    info.update(transform=transform, spread=spread, typical=typical, typical_why=typical_why)
     return eqx.field(default=nominal, converter=_as_float64, metadata={"jaxlift_param": info})
 
 
@@ -145,6 +160,8 @@ def param_infos(module: eqx.Module | type) -> dict[str, ParamInfo]:
             scale=meta["scale"],
             transform=meta["transform"],
             spread=meta["spread"],
+            typical=meta["typical"],
+            typical_why=meta["typical_why"],
         )
     return out
 

@@ -27,8 +27,11 @@ class EntrainedAir(AbstractStatelessEffect):
     """Compliance of undissolved air, falling with the square of pressure."""
 
     alpha0: Scalar = param(
-        0.0, "-", 0.0, 0.5, "gas volume per oil volume at p_atm", nesting=0.0, scale=0.01
-    )
+        0.0, "-", 0.0, 2.0, "gas volume per oil volume at p_atm", nesting=0.0, scale=0.01,
+        typical=(0.001, 2.0),
+        typical_why="from barely any air to the ~1.5 that would explain the thesis's whole "
+        "softening (docs/model.md); 2 is the specification's upper bound",
+    )  # fmt: skip
 
     name: ClassVar[str] = "entrained_air"
 

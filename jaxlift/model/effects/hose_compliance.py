@@ -16,8 +16,11 @@ class HoseCompliance(AbstractStatelessEffect):
     """Constant extra hydraulic capacitance."""
 
     C_h: Scalar = param(
-        0.0, "m^3/Pa", 0.0, 1e-9, "hose and seal compliance", nesting=0.0, scale=1e-12
-    )
+        0.0, "m^3/Pa", 0.0, 1e-9, "hose and seal compliance", nesting=0.0, scale=1e-12,
+        typical=(1e-13, 1e-11),
+        typical_why="hoses and seals from a tenth to ten times the oil's own capacitance "
+        "V0/beta ~ 1.4e-12 m^3/Pa",
+    )  # fmt: skip
 
     name: ClassVar[str] = "hose_compliance"
 

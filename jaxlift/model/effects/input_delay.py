@@ -19,7 +19,11 @@ from .base import AbstractStatelessEffect, Scalar
 class InputDelay(AbstractStatelessEffect):
     """Pure time delay of the commanded duty cycle."""
 
-    tau_d: Scalar = param(0.0, "s", 0.0, 2.0, "input dead time", nesting=0.0, scale=0.05)
+    tau_d: Scalar = param(
+        0.0, "s", 0.0, 2.0, "input dead time", nesting=0.0, scale=0.05,
+        typical=(0.01, 0.2),
+        typical_why="controller clock, I/O and voltage-unit response: 10-200 ms",
+    )  # fmt: skip
 
     name: ClassVar[str] = "input_delay"
 

@@ -26,8 +26,17 @@ from .base import AbstractEffect, Scalar, Signals, rigid_acceleration
 class MastCompliance(AbstractEffect):
     """Load on a spring-damper on the carriage."""
 
-    ks_inv: Scalar = param(0.0, "m/N", 0.0, 1e-3, "mast compliance 1/k_s", nesting=0.0, scale=1e-6)
-    c_s: Scalar = param(5e3, "N s/m", 0.0, 1e6, "mast damping")
+    ks_inv: Scalar = param(
+        0.0, "m/N", 0.0, 1e-3, "mast compliance 1/k_s", nesting=0.0, scale=1e-6,
+        typical=(1e-7, 1e-5),
+        typical_why="mast and forks deflecting 0.1-10 mm per kN: load modes of ~3-30 Hz "
+        "at 1000 kg",
+    )  # fmt: skip
+    c_s: Scalar = param(
+        5e3, "N s/m", 0.0, 1e6, "mast damping",
+        typical=(1e3, 1e5),
+        typical_why="damping ratios 0.05-0.5 of those modes at 1000 kg",
+    )  # fmt: skip
 
     name: ClassVar[str] = "mast_compliance"
     state_names: ClassVar[tuple[str, ...]] = ("delta", "delta_rate")

@@ -16,8 +16,10 @@ class MotorDroop(AbstractStatelessEffect):
     """Motor speed falling linearly with line pressure."""
 
     kappa: Scalar = param(
-        0.0, "rad/(s Pa)", 0.0, 1e-5, "motor speed droop per pressure", nesting=0.0, scale=3e-7
-    )
+        0.0, "rad/(s Pa)", 0.0, 1e-5, "motor speed droop per pressure", nesting=0.0, scale=3e-7,
+        typical=(3e-8, 6e-7),
+        typical_why="a series-wound motor slowing by 2-30 % of its ~18 rad/s at 10 MPa",
+    )  # fmt: skip
 
     name: ClassVar[str] = "motor_droop"
 

@@ -24,8 +24,11 @@ class MotorInertia(AbstractEffect):
     """First-order lag of the motor speed behind its static map."""
 
     tau_m: Scalar = param(
-        0.0, "s", 0.0, 5.0, "motor/pump speed time constant", nesting=0.0, scale=0.1
-    )
+        0.0, "s", 0.0, 5.0, "motor/pump speed time constant", nesting=0.0, scale=0.1,
+        typical=(0.01, 0.5),
+        typical_why="rotor and pump inertia against the motor torque: 10 ms for a small "
+        "pump motor to 0.5 s for a large series-wound one",
+    )  # fmt: skip
 
     name: ClassVar[str] = "motor_inertia"
     state_names: ClassVar[tuple[str, ...]] = ("omega_m",)

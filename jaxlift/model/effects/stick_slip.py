@@ -20,9 +20,16 @@ class StickSlip(AbstractStatelessEffect):
     """Stribeck-like breakaway friction near zero speed."""
 
     dFs: Scalar = param(
-        0.0, "N", 0.0, 1e5, "breakaway friction above Coulomb", nesting=0.0, scale=100.0
-    )
-    v_s: Scalar = param(0.01, "m/s", 1e-4, 0.2, "Stribeck speed of the breakaway term")
+        0.0, "N", 0.0, 1e5, "breakaway friction above Coulomb", nesting=0.0, scale=100.0,
+        typical=(20.0, 2000.0),
+        typical_why="cylinder seals: tens of N for new, lubricated seals to a few kN for "
+        "dry or worn ones",
+    )  # fmt: skip
+    v_s: Scalar = param(
+        0.01, "m/s", 1e-4, 0.2, "Stribeck speed of the breakaway term",
+        typical=(0.002, 0.03),
+        typical_why="Stribeck speeds of lubricated seals: a few mm/s to a few cm/s",
+    )  # fmt: skip
 
     name: ClassVar[str] = "stick_slip"
 
