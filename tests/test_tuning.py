@@ -234,8 +234,8 @@ def test_robust_tuning_has_better_worst_case_on_held_out_draws(fit_dir):
     stop), on 16 held-out draws; tuned at the tolerance of the evaluation (at rtol 1e-5
     LM found nominal gains whose cost was 2.55 there and 2.90 at 1e-6).
 
-    A trade-off, not a better optimiser: the nominal-tuned gains stay better on the
-    nominal plant. Measured (this code, 2 cores): held-out worst case 13.58 -> 12.92,
+    Usually a trade-off, the nominal-tuned gains staying better on the nominal plant
+    (not asserted: see the end). Measured (this code, 2 cores): held-out worst case 13.58 -> 12.92,
     mean 4.46 -> 4.31; over 208 held-out draws in 13 blocks of 16 the worst case was
     lower in every block (ratios 0.90-1.00), the mean too, 71 % of the draws better:
     a modest effect (~5 %), but a real one; its size depends on the machine (2.6 % on
@@ -265,7 +265,10 @@ def test_robust_tuning_has_better_worst_case_on_held_out_draws(fit_dir):
     obj = lambda c: float(robust_objective(jnp.asarray(c), alpha=0.34))
     assert obj(c_rob) < obj(c_nom), (obj(c_rob), obj(c_nom))
     assert c_rob.mean() < c_nom.mean(), (c_rob.mean(), c_nom.mean())
-    assert _cost(robust.controller) > _cost(nominal.controller)  # the price on the nominal plant
+    # No assertion on the nominal plant: the robust gains usually pay a price there
+    # (13.58 vs 12.92 above), but nominal tuning stops where LM stalls, and one run
+    # (the bottom end stop and NaN-safe step control in, fresh clone) found robust-tuned
+    # gains better on the nominal plant too (2.32 vs 2.38): a price is not a property.
 
 
 @pytest.mark.slow

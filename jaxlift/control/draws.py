@@ -54,12 +54,51 @@ class DrawSet:
         )
 
 
+#: Stated spreads (standard deviation of the log of the parameter) used when there is
+#: neither a posterior nor a fit's covariance -- a hand-written parameter file, or the
+#: nominal model: what a calibration of this lift typically leaves uncertain (bulk
+#: modulus +-20 %, friction and damping +-30 %, the fifth-power speed scale +-5 % as it
+#: enters to the fifth power), and +-30 % on the size of every effect switched on.
+STATED_SPREADS: dict[str, float] = {
+    "beta": 0.2, "cf_con": 0.3, "cf_in": 0.05, "cf_out": 0.3, "d": 0.3,
+}  # fmt: skip
+EFFECT_SPREAD = 0.3
+
+
+def stated_spread_draws(
+    n: int, seed: int, values: Mapping[str, float], effects: Sequence[str], why: str
+) -> DrawSet:
+    """``n`` draws around ``values`` with :data:`STATED_SPREADS` (log-normal, clipped to
+    the bounds); every parameter of the switched-on ``effects`` that is not at its
+    nesting value with :data:`EFFECT_SPREAD`. ``why``: why no posterior or fit was used."""
+    infos = all_param_infos(list(effects))
+    spreads = {k: s for k, s in STATED_SPREADS.items() if k in values}
+    for e in effects:
+        for k, info in EFFECTS[e].param_infos().items():
+            if k in values and values[k] > 0 and values[k] != info.nesting:
+                spreads[k] = EFFECT_SPREAD
+    rng = np.random.default_rng(seed)
+    names = sorted(spreads)
+    z = rng.standard_normal((n, len(names)))
+    draws = []
+    for row in z:
+        d = {k: float(v) for k, v in values.items()}
+        for j, k in enumerate(names):
+            x = float(values[k]) * math.exp(spreads[k] * row[j])
+            d[k] = float(np.clip(x, infos[k].lower, infos[k].upper))
+        draws.append(d)
+    text = ", ".join(f"{k} x/÷ {math.exp(s):.2f}" for k, s in sorted(spreads.items()))
+    return DrawSet(f"stated spreads ({why}): log-normal, {text}", list(effects), draws)
+
+
 def parameter_draws(
     n: int,
     seed: int,
     *,
     posterior_dir: str | os.PathLike | None = None,
     fit_dir: str | os.PathLike | None = None,
+    values: Mapping[str, float] | None = None,
+    effects: Sequence[str] = (),
 ) -> DrawSet:
     """``n`` draws of the model parameters from ``seed``.
 
@@ -70,7 +109,11 @@ def parameter_draws(
     unconstrained coordinate of each parameter (log/logit, delta method), except for a
     parameter whose standard error is large against its distance to the bound (>
     half of it), which is drawn in physical units and clipped to its bounds. Unfitted
-    parameters are fixed. ``source`` says which was used."""
+    parameters are fixed. Without either (no posterior, no ``fit_dir``, or a parameter
+    file without the fit's ``metrics.json``, e.g. a hand-written one), from
+    :data:`STATED_SPREADS` around ``values`` (the model's parameters; ``effects``
+    switched on), or around the parameter file's values. ``source`` says which was
+    used."""
     notes = []
     if posterior_dir is not None:
         try:
@@ -78,21 +121,26 @@ def parameter_draws(
             return DrawSet(f"posterior samples from {posterior_dir}", list(eff), list(draws))
         except (ImportError, FileNotFoundError, OSError, ValueError) as err:
             notes.append(f"posterior in {posterior_dir} not usable ({err})")
-    if fit_dir is None:
-        raise ParameterError(
-            "no parameter draws: give a posterior directory or a fit directory "
-            "(params.json + metrics.json from `jaxlift fit`)"
-        )
-    fit_dir = os.fspath(fit_dir)
     infos = all_param_infos("all")
-
-    values = load_params_json(os.path.join(fit_dir, "params.json"), infos)
+    if fit_dir is None:
+        if values is None:
+            raise ParameterError(
+                "no parameter draws: give a posterior directory, a fit directory "
+                "(params.json + metrics.json from `jaxlift fit`) or the model's values"
+            )
+        why = "; ".join([*notes, "no posterior and no fit covariance"])
+        return stated_spread_draws(n, seed, values, effects, why)
+    fit_dir = os.fspath(fit_dir)
+    file_values = load_params_json(os.path.join(fit_dir, "params.json"), infos)
     mpath = os.path.join(fit_dir, "metrics.json")
     try:
         with open(mpath, encoding="utf-8") as fh:
             metrics = json.load(fh)
     except FileNotFoundError:
-        raise ParameterError(f"{mpath}: not found (needed for the fit covariance)") from None
+        base = dict(values) if values is not None else file_values
+        why = "; ".join([*notes, f"{mpath} not found: no fit covariance"])
+        return stated_spread_draws(n, seed, base, effects, why)
+    values = file_values
     se = {k: float(v) for k, v in (metrics.get("stderr") or {}).items() if v is not None}
     se = {k: v for k, v in se.items() if k in values and math.isfinite(v) and v > 0}
     names = sorted(se)

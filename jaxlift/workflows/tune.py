@@ -25,7 +25,7 @@ from ..control.draws import DrawSet, batch_models, parameter_draws
 from ..control.performance import figures
 from ..control.reference import thesis_reference
 from ..control.tune import TuneResult, tune_gains, tune_multistart
-from ..model.build import load_model
+from ..model.build import load_model, model_params
 from ..model.effects import AbstractEffect
 from ..model.log import Log
 from ..model.plant import Plant
@@ -162,7 +162,12 @@ def run_tune(
     fit_dir = os.path.dirname(os.path.abspath(params_path)) if params_path else None
     try:
         draws = parameter_draws(
-            robust_draws + eval_draws, seed, posterior_dir=posterior_dir, fit_dir=fit_dir
+            robust_draws + eval_draws,
+            seed,
+            posterior_dir=posterior_dir,
+            fit_dir=fit_dir,
+            values={k: float(v) for k, v in model_params(plant, effects).items()},
+            effects=[e.name for e in effects],
         )
     except Exception as err:  # noqa: BLE001 -- no draws: nominal only, and say so
         progress(f"no parameter draws ({err}): robust tuning and report skipped")
