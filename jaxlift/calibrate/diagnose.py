@@ -334,14 +334,16 @@ def refit_starts(effect: str, screen_estimate: float) -> list[dict[str, float]]:
     starts = [{par: min(max(est, lo), hi)}]
     seconds = [(n, i.typical) for n, i in infos.items() if n != par and i.typical]
     for q in (0.0, 0.5, 1.0):
-        v = math.exp(math.log(lo) + q * (math.log(hi) - math.log(lo)))
+        v = _log_between(lo, hi, q)
         if any(abs(math.log(v / st[par])) < math.log(2.0) for st in starts):
             continue
-        st = {par: v}
-        for name, (a, b) in seconds:
-            st[name] = math.exp(math.log(a) + q * (math.log(b) - math.log(a)))
-        starts.append(st)
+        starts.append({par: v, **{n: _log_between(a, b, q) for n, (a, b) in seconds}})
     return starts
+
+
+def _log_between(lo: float, hi: float, q: float) -> float:
+    """The point a fraction ``q`` of the way from ``lo`` to ``hi`` on a log scale."""
+    return math.exp(math.log(lo) + q * (math.log(hi) - math.log(lo)))
 
 
 def decide(

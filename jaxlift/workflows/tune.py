@@ -25,7 +25,7 @@ from ..control.draws import DrawSet, batch_models, parameter_draws
 from ..control.performance import figures
 from ..control.reference import thesis_reference
 from ..control.tune import TuneResult, tune_gains, tune_multistart
-from ..model.build import load_model, model_params
+from ..model.build import load_model, make_effects, model_params
 from ..model.effects import AbstractEffect
 from ..model.log import Log
 from ..model.plant import Plant
@@ -60,8 +60,7 @@ def calibrated_model(
         plant, effs = load_model(None, effects)
         return plant, effs, None
     fit_dir = pathlib.Path(out_dir if out_dir is not None else ".") / "fit"
-    names = [e for e in effects.split(",") if e.strip()] if isinstance(effects, str) else []
-    names = list(effects) if effects is not None and not isinstance(effects, str) else names
+    names = [e.name for e in make_effects(effects)]
     progress(
         "no --params: fitting the model to the logs first (jaxlift fit; this takes "
         f"minutes) into {fit_dir}"
