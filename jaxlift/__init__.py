@@ -35,7 +35,16 @@ from .control.stability import closed_loop_eigenvalues, stability_table
 from .control.tune import TuneResult, tune_gains, tune_multistart
 from .model.build import Model, all_param_infos, load_model, make_effects, model_params, with_params
 from .model.constants import BETA_OIL
-from .model.effects import EFFECTS, AbstractEffect, AbstractStatelessEffect, Signals
+from .model.effects import (
+    EFFECTS,
+    AbstractEffect,
+    AbstractStatelessEffect,
+    Signals,
+    load_effect_file,
+    load_entry_point_effects,
+    register_effect,
+    unregister_effect,
+)
 from .model.effects.entrained_air import EntrainedAir
 from .model.effects.hose_compliance import HoseCompliance
 from .model.effects.input_delay import InputDelay
@@ -180,6 +189,10 @@ __all__ = [
     "param",
     "param_infos",
     "read_log",
+    "register_effect",
+    "unregister_effect",
+    "load_effect_file",
+    "load_entry_point_effects",
     "replace_params",
     "save_params_json",
     "simulate",

@@ -91,3 +91,27 @@ def test_gradient_through_the_stop_is_finite():
 
     g = jax.jacfwd(final_height)(jnp.asarray(1e-11))
     assert np.isfinite(float(g))
+
+
+def test_derivative_of_a_start_on_the_stop_is_that_of_raising_it():
+    """A run that starts exactly at 0 (a log on the stop) has, in forward mode, the
+    derivative with respect to its initial height of raising the start (the
+    one-sided finite difference upwards): the stop's contact must not leak into the
+    tangent at the tie ``x = 0``. It did with ``jnp.maximum`` (derivative 1/2 at the
+    tie): the tangent took half the contact stiffness, the solver stepping for the
+    primal let it grow to 1e19, and every fit on such a log stalled at its start."""
+    n = 1500
+    pwm = np.where(TS[:n] > 3.0, 0.5, 0.0)  # a hold on the stop, then a lift
+
+    def heights(x0):
+        inputs = jl.Inputs.from_arrays(TS[:n], pwm, np.full(n, 800.0), x0)
+        sol = jl.simulate(jl.Plant(), (), inputs, adjoint=diffrax.ForwardMode())
+        return sol.height
+
+    _, tangent = jax.jvp(heights, (jnp.asarray(0.0),), (jnp.asarray(1.0),))
+    step = 1e-4  # 0.1 mm: large against the integrator's own noise (rtol 1e-6)
+    fd = (np.asarray(heights(jnp.asarray(step))) - np.asarray(heights(jnp.asarray(0.0)))) / step
+    tangent = np.asarray(tangent)
+    assert np.all(np.isfinite(tangent))
+    np.testing.assert_allclose(tangent, fd, atol=1e-3)
+    assert tangent[0] == 1.0  # raising the start raises the first sample one for one

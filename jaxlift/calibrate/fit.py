@@ -112,16 +112,8 @@ def offsets_and_chi2n(
     signals) at those offsets -- from the same residuals, no second simulation.
     Empty dicts if the model cannot be simulated."""
 
-    if not logs:
-        return {}, {}
-    effs = make_effects(effects)
-    own = {k: v for k, v in params.items() if k in all_param_infos(effs)}
-    plant, effs = with_params(Plant(), effs, own)
-    experiments = make_experiments(logs)
-    problem = Problem(plant, effs, tuple(experiments), (), ())
-    theta0 = np.zeros(len(experiments))
-    run = levenberg_marquardt(problem.residuals_at, problem.jacobian_at, theta0, max_iter=30)
-    if not np.isfinite(run.chi2):
+    run, experiments = _offsets_run(params, effects, logs)
+    if run is None:
         return {}, {}
     ends = np.cumsum([e.n_residuals for e in experiments])
     blocks = np.split(np.asarray(run.r), ends[:-1])
@@ -131,12 +123,39 @@ def offsets_and_chi2n(
     )
 
 
+def heldout_residuals(
+    params: Mapping[str, float], effects: Sequence[str], logs: Sequence[Log]
+) -> tuple[np.ndarray | None, list[int], list[Experiment]]:
+    """Scaled residuals of a model on logs it was not fitted to, each at its own
+    initial-height offset (:func:`estimate_x0_offsets`): ``(r, sizes, experiments)``,
+    ``r`` None if the model cannot be simulated on them."""
+    run, experiments = _offsets_run(params, effects, logs)
+    sizes = [e.n_residuals for e in experiments]
+    return (None if run is None else np.asarray(run.r)), sizes, experiments
+
+
+def _offsets_run(params, effects, logs):
+    """Levenberg--Marquardt over the logs' initial-height offsets alone (the model's
+    parameters held); ``(None, experiments)`` if the model cannot be simulated."""
+    if not logs:
+        return None, []
+    effs = make_effects(effects)
+    own = {k: v for k, v in params.items() if k in all_param_infos(effs)}
+    plant, effs = with_params(Plant(), effs, own)
+    experiments = make_experiments(logs)
+    problem = Problem(plant, effs, tuple(experiments), (), ())
+    theta0 = np.zeros(len(experiments))
+    run = levenberg_marquardt(problem.residuals_at, problem.jacobian_at, theta0, max_iter=30)
+    return (run if np.isfinite(run.chi2) else None), experiments
+
+
 def fit(
     logs: Sequence[Log] | Sequence[Experiment],
     *,
     effects: Sequence[str] | str = (),
     free: str | Sequence[str] | Sequence[str | Sequence[str]] = "all",
     init: Mapping[str, float] | None = None,
+    x0_offsets: Mapping[str, float] | None = None,
     staged: bool = False,
     n_starts: int = 8,
     seed: int = 0,
@@ -152,6 +171,9 @@ def fit(
         effects: effects switched on (names).
         free: parameters to fit: set names / parameter names (see :func:`resolve_free`).
         init: starting values (physical units) of any parameters; others nominal.
+        x0_offsets: starting values of the logs' initial-height offsets [m], by log
+            name (e.g. a previous fit's :attr:`FitResult.x0_offsets`, for a warm
+            start); others 0.
         staged: fit the motor set first, then the dynamic set, then all of ``free``
             (thesis 2.3.2); each stage starts from the previous optimum.
         n_starts: starting points per stage (the first is the current estimate, the
@@ -200,7 +222,8 @@ def fit(
     initial = dict(values)
     infos_all = all_param_infos(effs)
     stages: list[StageResult] = []
-    x0_mm = np.zeros(len(experiments))  # initial-height offsets, estimated with the rest
+    # initial-height offsets [mm], estimated with the rest
+    x0_mm = np.array([1e3 * (x0_offsets or {}).get(e.name, 0.0) for e in experiments])
     n_res = sum(e.n_residuals for e in experiments)
     # one problem over all free parameters (one compiled Jacobian); each stage moves
     # its own columns and the initial-height offsets

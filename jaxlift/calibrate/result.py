@@ -113,7 +113,7 @@ def finish(plant0, effs, experiments, free, values, initial, stages, x0_mm, rJ=N
     n, p = J.shape
     chi2 = float(r @ r)
     s2 = chi2 / max(n - p, 1)
-    rho1 = _pooled_rho1(r, [e.n_residuals for e in experiments], experiments)
+    rho1 = pooled_rho1(r, [e.n_residuals for e in experiments], experiments)
     inflation = (1 + rho1) / max(1 - rho1, 1e-3)
     # covariance in the unconstrained coordinates (columns scaled for the SVD), then to
     # physical units by the delta method: cov_x = D cov_theta D, D = dx/dtheta. Working in
@@ -183,7 +183,7 @@ def finish(plant0, effs, experiments, free, values, initial, stages, x0_mm, rJ=N
     )
 
 
-def _pooled_rho1(r, sizes, experiments) -> float:
+def pooled_rho1(r, sizes, experiments) -> float:
     """Lag-1 autocorrelation of the residuals, pooled over logs and signals."""
     num = den = 0.0
     off = 0

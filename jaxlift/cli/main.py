@@ -86,12 +86,14 @@ def cmd_diagnose(args) -> int:
         seed=args.seed,
         progress=lambda line: print(line, flush=True),
     )
-    found = [d.verdict for d in steps if d.verdict not in ("none", "undecided")]
+    from jaxlift.calibrate.diagnose import found_effects
+
+    found = found_effects(steps)
     print(f"verdict: {steps[0].verdict}")
     if len(steps) > 1:
         print(f"missing effects, in order: {', '.join(found) or 'none'}")
-    if steps[-1].verdict == "undecided":
-        print("undecided: " + "; ".join(steps[-1].reasons))
+    if steps[-1].verdict in ("undecided", "unexplained"):
+        print(f"{steps[-1].verdict}: " + "; ".join(steps[-1].reasons))
     print(f"wrote {args.out}/diagnosis.json, report.md, report.html, figures/")
     return 0
 
@@ -160,7 +162,38 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_posterior_parsers(sub)  # jaxlift posterior
     add_control_parsers(sub)  # jaxlift tune, jaxlift control simulate
+    for leaf in _leaf_parsers(parser):
+        leaf.add_argument(
+            "--effect-file",
+            action="append",
+            default=[],
+            metavar="PATH",
+            help="a Python file defining your own effect(s) (subclasses of "
+            "jaxlift.AbstractEffect; docs/effects.md): used like the built-in ones. "
+            "Repeatable",
+        )
     return parser
+
+
+def _leaf_parsers(parser: argparse.ArgumentParser):
+    """Every (sub)command's parser that has no subcommands of its own."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        yield parser
+    for action in subs:
+        for child in dict.fromkeys(action.choices.values()):  # aliases: once
+            yield from _leaf_parsers(child)
+
+
+def load_user_effects(paths) -> list[str]:
+    """Register installed packages' effects (entry points ``jaxlift.effects``) and
+    those of ``--effect-file`` files; their names."""
+    import jaxlift as jl
+
+    names = jl.load_entry_point_effects()
+    for path in paths or []:
+        names += jl.load_effect_file(path)
+    return names
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -170,6 +203,9 @@ def main(argv: list[str] | None = None) -> int:
     import jaxlift as jl
 
     try:
+        user = load_user_effects(getattr(args, "effect_file", []))
+        if user:
+            print(f"user effects: {', '.join(user)}", flush=True)
         return args.func(args)
     except (jl.LogError, jl.ParameterError, jl.SimulationError, ValueError) as err:
         print(f"jaxlift {args.command}: error: {err}", file=sys.stderr)

@@ -126,9 +126,15 @@ class Plant(eqx.Module):
         reaches it is reported as out of range."""
         mass = m_load + self.stage_mass(x)
         w = self.omega_es
-        depth = jnp.maximum(-x, 0.0)
+        # jnp.where, not jnp.maximum: at a tie (a fork resting exactly at x = 0, as a
+        # log that starts on the stop does until the pressure lifts it) maximum's
+        # derivative is 1/2, which hands the forward-mode tangent half the contact
+        # stiffness while the primal feels none; the explicit solver, stepping for the
+        # primal, then lets the tangent blow up (measured: d r / d x0-offset 1.6e19
+        # where finite differences give 175, and every fit on such a log stalled)
+        depth = jnp.where(x < 0.0, -x, 0.0)
         push = mass * w * w * depth * (1.0 - 2.0 * self.zeta_es * w * v / G)
-        return jnp.maximum(push, 0.0)
+        return jnp.where(push > 0.0, push, 0.0)
 
     def static_pressure(self, x: Scalar, m_load: Scalar) -> Scalar:
         """Pressure holding the fork at rest, ``M(x) g r / A(x)`` [Pa]."""

@@ -109,7 +109,9 @@ def initial_state(
     """At rest at ``inputs.x0`` (never below the bottom end stop at 0 m: a fit's
     initial-height offset cannot put the start there), pressure at static equilibrium
     (docs/model.md)."""
-    x0 = jnp.maximum(inputs.x0, 0.0)
+    # where, not maximum: at the tie x0 = 0 (a log starting on the stop) the derivative
+    # is that of raising the start (1), not 1/2 (see Plant.end_stop_force)
+    x0 = jnp.where(inputs.x0 >= 0.0, inputs.x0, 0.0)
     u0, m0 = inputs.at(inputs.ts[0])
     p0 = plant.static_pressure(x0, m0)
     y_base = jnp.stack([x0, jnp.zeros(()), p0])

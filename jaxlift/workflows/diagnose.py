@@ -11,8 +11,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from ..analysis.oscillation import oscillation_table, zoom_windows
-from ..analysis.regimes import segment_log
-from ..calibrate.diagnose import diagnose, diagnose_iteratively
+from ..analysis.regimes import error_table, segment_log
+from ..calibrate.diagnose import diagnose, diagnose_iteratively, found_effects
 from ..calibrate.fit import estimate_x0_offsets
 from ..model.log import Log
 from ..report.analysis_plots import plot_oscillations_vs_height
@@ -109,14 +109,17 @@ def run_diagnose(
         error_rows.append(row)
     plot_error_steps(error_rows, figs / "error_by_step.png")
     first = steps[0]
-    verdicts = [d.verdict for d in steps if d.verdict not in ("none", "undecided")]
+    verdicts = found_effects(steps)
     dropped = [name for d in steps for name in d.dropped]
     last = steps[-1]
     data = {
         "verdict": first.verdict,
         "verdicts": verdicts,
-        # how the iteration ended: "none" (nothing more is missing) or "undecided"
+        # how the iteration ended: "none" (nothing more is missing), "undecided" (which
+        # of two) or "unexplained" (something none of the candidates describes)
         "final_verdict": last.verdict,
+        "remaining_misfit": None if last.misfit is None else last.misfit.as_dict(),
+        "heldout_excluded": first.heldout_excluded,
         "undecided_between": last.undecided_between,
         "reasons": last.reasons,
         "dropped": dropped,
@@ -140,7 +143,14 @@ def run_diagnose(
             if last.verdict == "undecided"
             else ""
         )
+        + (
+            " Then **unexplained**: " + "; ".join(last.reasons) + "."
+            if last.verdict == "unexplained"
+            else ""
+        )
     )
+    for name, why in first.heldout_excluded.items():
+        rep.text(f"Held-out log `{name}` is not used to judge the candidates: {why}.")
     rep.heading("The error falling, step by step")
     rep.table(error_rows, caption="chi2 per sample (1 = sensor noise level) of each model.")
     rep.figure(figs / "error_by_step.png", "Error of each model on fitted and held-out logs.")
@@ -177,6 +187,21 @@ def run_diagnose(
             "the others by score. Verdict = largest BIC drop beyond 10 whose held-out "
             "chi2 also falls by more than 10 (effective samples).",
         )
+    # where the final model's error remains: per regime and per stage, each log
+    rep.heading("Where the error remains")
+    rep.text(
+        "RMS and mean error of the final model (model - measured) overall, per regime and "
+        "per mast stage. The sensor noise is 0.5 mm (height) and 3.2 mm/s (speed): groups "
+        "well above that hold what the model still misses."
+    )
+    final_sims_all = sims[tuple(models[-1][0])]
+    where_rows = []
+    for i, lg in enumerate(all_logs):
+        sim = final_sims_all[i]
+        for row in error_table(lg, sim["height"], sim["speed"]):
+            where_rows.append({"log": lg.name, **row})
+    data["where_error_remains"] = where_rows
+    rep.table(where_rows, caption="Error of the final model by log, regime and stage.")
     # the signature, on the user's own data, before and after adding the effects
     rep.heading("The physical signature on your data")
     base_sims = sims[tuple(models[0][0])]
