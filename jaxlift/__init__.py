@@ -15,9 +15,12 @@ from importlib.metadata import version as _version
 from .calibrate.diagnose import (
     Diagnosis,
     EffectScreen,
+    RemainingMisfit,
     diagnose,
     diagnose_iteratively,
+    remaining_misfit,
     screen_effects,
+    usable_heldout,
 )
 from .calibrate.experiment import PARAMETER_SETS
 from .calibrate.fit import evaluate, fit
@@ -31,7 +34,11 @@ from .control.optimisers import LBFGS, Adam, LevenbergMarquardt
 from .control.performance import CostWeights, Figures
 from .control.performance import figures as closed_loop_figures
 from .control.reference import Reference, thesis_reference
-from .control.stability import closed_loop_eigenvalues, stability_table
+from .control.stability import (
+    closed_loop_eigenvalues,
+    sampled_closed_loop_eigenvalues,
+    stability_table,
+)
 from .control.tune import TuneResult, tune_gains, tune_multistart
 from .model.build import Model, all_param_infos, load_model, make_effects, model_params, with_params
 from .model.constants import BETA_OIL
@@ -132,6 +139,7 @@ __all__ = [
     "ScheduledPID",
     "TuneResult",
     "closed_loop_eigenvalues",
+    "sampled_closed_loop_eigenvalues",
     "closed_loop_figures",
     "load_gains",
     "parameter_draws",
@@ -189,6 +197,9 @@ __all__ = [
     "param",
     "param_infos",
     "read_log",
+    "RemainingMisfit",
+    "remaining_misfit",
+    "usable_heldout",
     "register_effect",
     "unregister_effect",
     "load_effect_file",

@@ -54,3 +54,37 @@ def test_remaining_misfit_is_significant_only_for_a_model_that_misses_something(
     right = fit(logs, effects=["input_delay"], init=hidden, free="all,effects", n_starts=1)
     m = remaining_misfit(right, held)
     assert not m.significant and abs(m.chi2n - 1) < 0.05 and abs(m.heldout_chi2n - 1) < 0.05, m
+
+
+@pytest.mark.slow
+def test_a_law_outside_the_eight_is_unexplained_not_named(tmp_path):
+    """A quadratic (turbulent) drag hidden, not among the candidates, diagnosed from
+    nominal values by the CLI: the final verdict is ``unexplained``, and an effect
+    added on the way is reported as a possible stand-in, with the small share of the
+    model error it explains. (With the law as a user effect the diagnosis names it:
+    ``test_user_effects.py``.)"""
+    import json
+
+    import test_user_effects as ue
+
+    from jaxlift.cli.main import main
+    from jaxlift.model.effects import EFFECTS
+
+    drag = tmp_path / "drag.py"
+    drag.write_text(ue.DRAG_FILE)
+    jl.load_effect_file(drag)  # only to make the logs
+    try:
+        logs = [ue._log(tmp_path / f"d{m:.0f}.csv", m, s, x0=x0)
+                for m, s, x0 in ((500.0, 3, 0.0), (1600.0, 4, 1.0))]  # fmt: skip
+        held = ue._log(tmp_path / "held.csv", 1000.0, 5, x0=0.0)
+    finally:
+        EFFECTS.pop("turbulent_drag")
+    out = tmp_path / "diag"
+    assert main(["diagnose", *logs, "--validate", held, "--out", str(out)]) == 0
+    d = json.loads((out / "diagnosis.json").read_text())
+    assert d["final_verdict"] == "unexplained", (d["verdicts"], d["final_verdict"])
+    misfit = d["remaining_misfit"]
+    assert misfit["significant"] and misfit["chi2n"] > 1.2 and misfit["heldout_chi2n"] > 1.2
+    for step in d["steps"][:-1]:  # whatever was added explains little of the error
+        assert step["explained_share"] < 0.5, step["verdict"]
+        assert step["verdict"] in " ".join(d["reasons"])

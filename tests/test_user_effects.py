@@ -209,3 +209,8 @@ def test_user_effect_is_diagnosed_like_the_built_in_ones(drag_file, tmp_path):
     d = json.loads((out / "diagnosis.json").read_text())
     ranking = [(r["effect"], r["delta_bic"]) for r in d["steps"][0]["ranking"]]
     assert d["verdict"] == "turbulent_drag", ranking
+    top = d["steps"][0]["ranking"][0]
+    # the held-out model error (chi2/N above the noise floor of 1) falls by 80 % or more
+    before, after = top["heldout_chi2_before"] - 1, top["heldout_chi2_after"] - 1
+    assert after <= 0.2 * before, (before, after)
+    assert abs(top["fitted_params"]["c_q"] / DRAG - 1) < 0.2

@@ -106,9 +106,19 @@ class Diagnosis:
     #: :func:`diagnose_iteratively`): see :func:`remaining_misfit`
     misfit: RemainingMisfit | None = None
 
+    def explained_share(self) -> float | None:
+        """The share of the model error (chi2/N above the noise floor of 1) that the
+        named effect removed on the fitted logs; None without a named effect."""
+        if self.winner_fit is None:
+            return None
+        before = self.base_chi2 / self.n_residuals - 1.0
+        after = self.winner_fit.chi2 / self.winner_fit.n_residuals - 1.0
+        return (before - after) / before if before > 0 else None
+
     def as_dict(self) -> dict:
         return {
             "verdict": self.verdict,
+            "explained_share": self.explained_share(),
             "undecided_between": self.undecided_between,
             "reasons": self.reasons,
             "heldout_excluded": self.heldout_excluded,
@@ -608,7 +618,19 @@ def diagnose_iteratively(
                 + last.misfit.describe()
                 + "; see where it remains (report) and docs/effects.md to add your own"
             ]
-            say("unexplained: " + last.reasons[0])
+            partial = [
+                f"{d.verdict} ({100 * d.explained_share():.0f} % of the model error)"
+                for d in steps[:-1]
+                if d.explained_share() is not None
+            ]
+            if partial:
+                last.reasons.append(
+                    "the effects added on the way, " + ", ".join(partial) + ", lower the "
+                    "error but leave it well above the sensor noise: they may stand in "
+                    "for what is missing rather than be it"
+                )
+            for line in last.reasons:
+                say("unexplained: " + line)
     return steps
 
 

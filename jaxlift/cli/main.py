@@ -92,6 +92,7 @@ def cmd_diagnose(args) -> int:
     print(f"verdict: {steps[0].verdict}")
     if len(steps) > 1:
         print(f"missing effects, in order: {', '.join(found) or 'none'}")
+        print(f"final verdict: {steps[-1].verdict}")
     if steps[-1].verdict in ("undecided", "unexplained"):
         print(f"{steps[-1].verdict}: " + "; ".join(steps[-1].reasons))
     print(f"wrote {args.out}/diagnosis.json, report.md, report.html, figures/")

@@ -293,8 +293,18 @@ def _solve_sampled(
             u_a = u_b = u
             t_sw = t
             jumps = jnp.stack([t + T_c])
+        # inside the solver's stability region, as in the continuous form: without it
+        # a fork at rest (the period's solution constant, nothing to control) took
+        # whole-period steps across the Coulomb friction's stiff slope at v = 0, and
+        # the forward-mode sensitivities grew to 1e19 (measured): the tuning's
+        # Jacobian was garbage and LM stalled at its start (issue: `--sampled` "cost
+        # 6.297 -> 6.297")
         controller = JumpStepSizeController(
-            diffrax.PIDController(rtol=rtol, atol=atol, dtmax=DTMAX, norm=error_norm),
+            StabilityLimitedController(
+                diffrax.PIDController(rtol=rtol, atol=atol, dtmax=DTMAX, norm=error_norm),
+                _plant_field,
+                atol,
+            ),
             jumps,
             assume_sorted=True,
         )

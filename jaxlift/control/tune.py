@@ -58,6 +58,7 @@ from .performance import (
     CostWeights,
 )
 from .reference import Reference
+from .stability import stabilise_for_clock
 
 
 # ------------------------------------------------------------------ tuning
@@ -93,6 +94,9 @@ class TuneResult:
     names: tuple[str, ...]
     message: str = ""
     n_with_derivatives: int | None = None
+    #: sampled tuning from gains unstable on the clock: what the tuning started from
+    #: instead, and why (:func:`~jaxlift.control.stability.stabilise_for_clock`)
+    start_note: str | None = None
 
 
 def _tune_result(space, controller, history, history_s, best, t_start, message, **extra):
@@ -130,6 +134,7 @@ def tune_gains(
     progress: bool = False,
     rtol: float = 1e-5,
     optimiser: LevenbergMarquardt | LBFGS | Adam | None = None,
+    stabilise: bool = True,
     **sim_kw,
 ) -> TuneResult:
     """Tune the gains of ``controller`` on the log gains, derivatives through the
@@ -164,9 +169,23 @@ def tune_gains(
         progress: tqdm progress bar (stderr).
         rtol: solver tolerance during tuning; ``sim_kw``: ``sampled``, ``T_c``,
             ``noise_seed`` of :func:`simulate_closed_loop`.
+        stabilise: with ``sampled=True``, start from gains stable on the clock when
+            ``controller``'s are not (:func:`~jaxlift.control.stability.stabilise_for_clock`;
+            said in :attr:`TuneResult.start_note`).
 
     Deterministic: the same inputs give the same gains.
     """
+    note = None
+    if stabilise and sim_kw.get("sampled", False):
+        nominal = (
+            jax.tree.map(lambda a: a[0], (plant, tuple(effects)))
+            if batched_plants
+            else (plant, canonical_effects(effects))
+        )
+        loads = [float(r.m_load) for r in references]
+        controller, note = stabilise_for_clock(
+            controller, nominal[0], nominal[1], loads, sim_kw.get("T_c", 0.01)
+        )
 
     t_start = time.perf_counter()
     effects = canonical_effects(effects) if not batched_plants else tuple(effects)
@@ -201,7 +220,7 @@ def tune_gains(
         if trials not in ("jacobian", "residuals"):
             raise ValueError(f"trials must be auto/jacobian/residuals, not {trials!r}")
         r_only = (lambda th: _residuals_only(th, *args)) if trials == "residuals" else None
-        return _tune_lm(
+        result = _tune_lm(
             lambda th: _residuals_and_jacobian(th, *args),
             r_only,
             space,
@@ -211,6 +230,7 @@ def tune_gains(
             t_start,
             ftol,
         )
+        return dataclasses.replace(result, start_note=note)
 
     def vg(theta):
         return _objective_value_and_grad(
@@ -218,7 +238,8 @@ def tune_gains(
         )
 
     if method == "lbfgs":
-        return _tune_lbfgs(vg, space, controller, steps, progress, t_start)
+        result = _tune_lbfgs(vg, space, controller, steps, progress, t_start)
+        return dataclasses.replace(result, start_note=note)
     opt = optax.apply_if_finite(optax.adam(learning_rate), max_consecutive_errors=5)
     theta = jnp.asarray(space.to_theta(controller))
     state = opt.init(theta)
@@ -252,6 +273,7 @@ def tune_gains(
         n_evaluations=steps + 1,
         wall_s=time.perf_counter() - t_start,
         names=space.names,
+        start_note=note,
     )
 
 

@@ -170,7 +170,10 @@ def robustness_report(
     rep.heading("Closed-loop stability (nominal model)")
     rep.text(
         "Max real part of the eigenvalues of the closed loop linearised with `jax.jacfwd` "
-        "at steady motion (height frozen) along the lift, slow and fast reference speed. "
+        "at steady motion (height frozen) along the lift, slow and fast reference speed, "
+        f"in continuous time and as deployed: sampled every {1e3 * T_c:g} ms with the duty "
+        "held (the multipliers lambda of one period, given as log(lambda) / T_c so that "
+        "the columns read alike; stable when |lambda| < 1: `max_abs_multiplier`). "
         "With noise: the saturation's slope replaced by its describing gain under the "
         "sensor noise (the probability that the noisy duty stays inside (0, 1)); "
         "a gain below 1 weakens the loop."
@@ -178,18 +181,19 @@ def robustness_report(
     m = float(reference.m_load)
     for name, ctrl in controllers.items():
         rows = []
-        for noisy in (False, True):
-            for r in stability_table(
-                plant, effects, ctrl, m, noise=noisy, sampled=sampled, T_c=T_c
-            ):
-                rows.append(dict(noise=noisy, **r))
+        for form_sampled in (False, True):
+            for noisy in (False, True):
+                for r in stability_table(
+                    plant, effects, ctrl, m, noise=noisy, sampled=form_sampled, T_c=T_c
+                ):
+                    rows.append(dict(noise=noisy, **r))
         summary.setdefault("stability", {})[name] = rows
         n_unstable = sum(not r["stable"] for r in rows)
         rep.heading(f"Stability: {name} ({n_unstable} of {len(rows)} points unstable)", 3)
         rep.table(
             rows,
-            columns=["noise", "point", "x_m", "v_ref_mps", "u", "sat_gain", "max_real_per_s",
-                     "freq_hz", "stable"],
+            columns=["form", "noise", "point", "x_m", "v_ref_mps", "u", "sat_gain",
+                     "max_real_per_s", "freq_hz", "max_abs_multiplier", "stable"],
             floatfmt=".3g",
         )  # fmt: skip
     return rep, summary

@@ -156,6 +156,10 @@ def run_tune(
     )
     gain_sets = {"thesis PID": thesis, "nominal-tuned": nominal.controller}
     chosen, chosen_name = nominal.controller, "nominal-tuned"
+    notes = []
+    if nominal.start_note:
+        notes.append(nominal.start_note)
+        progress(f"note: {nominal.start_note}")
 
     draws = None
     fit_dir = os.path.dirname(os.path.abspath(params_path)) if params_path else None
@@ -171,7 +175,6 @@ def run_tune(
     except Exception as err:  # noqa: BLE001 -- no draws: nominal only, and say so
         progress(f"no parameter draws ({err}): robust tuning and report skipped")
     robust = None
-    notes = []
     if draws is not None:
         progress(f"parameter draws: {draws.source}")
         model_effects = sorted(e.name for e in effects)
