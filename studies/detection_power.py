@@ -65,6 +65,7 @@ def run_case(spec: dict, data_dir: pathlib.Path, out_dir: pathlib.Path) -> dict:
     err = io.StringIO(proc.stderr)
     wall = time.perf_counter() - t0
     result = {
+        "commit": _jaxlift_commit(),
         "case_id": spec["case_id"],
         "kind": spec["kind"],
         "hidden": spec["hidden_effects"],
@@ -90,14 +91,39 @@ def run_case(spec: dict, data_dir: pathlib.Path, out_dir: pathlib.Path) -> dict:
     return result
 
 
+def _jaxlift_commit() -> str:
+    """The git commit of the jaxlift that the cases' processes import (the study can run
+    from a frozen worktree on PYTHONPATH while development goes on)."""
+    code = "import jaxlift, pathlib; print(pathlib.Path(jaxlift.__file__).parent)"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    where = proc.stdout.strip() or "."
+    rev = subprocess.run(["git", "-C", where, "rev-parse", "--short", "HEAD"],
+                         capture_output=True, text=True, check=False)  # fmt: skip
+    dirty = subprocess.run(["git", "-C", where, "status", "--porcelain", "--", "."],
+                           capture_output=True, text=True, check=False)  # fmt: skip
+    return rev.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "") or "unknown"
+
+
 def outcome(r: dict) -> str:
-    """``correct`` / ``undecided`` / ``wrong`` / ``crash`` for one result."""
+    """``correct`` / ``undecided`` / ``unexplained`` / ``wrong`` / ``crash`` for one
+    result. ``undecided`` and ``unexplained`` are honest non-answers (nothing wrong
+    named, the diagnosis says it cannot tell or that something none of the candidates
+    describes is missing); a wrong name in a diagnosis that ends ``unexplained`` is
+    wrong but flagged (the report lists the named effects as possible stand-ins), so
+    not confident: see :func:`confident`."""
     if r.get("exit_code") != 0 or "found" not in r:
         return "crash"
     hidden, found = set(r["hidden"]), set(r["found"])
-    if r.get("final_verdict") == "undecided" and found <= hidden:
-        return "undecided"
-    return "correct" if found == hidden else "wrong"
+    if found == hidden:
+        return "correct"
+    if r.get("final_verdict") in ("undecided", "unexplained") and found <= hidden:
+        return r["final_verdict"]
+    return "wrong"
+
+
+def confident(r: dict) -> bool:
+    """A verdict given without reservation: not ending ``undecided`` or ``unexplained``."""
+    return r.get("final_verdict") not in ("undecided", "unexplained")
 
 
 def cmd_run(args) -> int:
@@ -119,6 +145,17 @@ def cmd_run(args) -> int:
             f"[{outcome(r)}] {r['wall_s']:.0f} s"
         )
     return 0
+
+
+def size_at_90(sizes, ok, min_cases: int = 3) -> str:
+    """The smallest size from which on (all cases at that size or larger) at least 90 %
+    of the cases were identified, with at least ``min_cases`` cases there."""
+    pairs = sorted(zip(sizes, ok))
+    for i, (s, _) in enumerate(pairs):
+        tail = [o for _, o in pairs[i:]]
+        if len(tail) >= min_cases and sum(tail) >= 0.9 * len(tail):
+            return f"90 % identified from {s:.3g} on ({sum(tail)} of {len(tail)})"
+    return f"90 % not reached with >= {min_cases} cases ({len(pairs)} cases so far)"
 
 
 def _load(out: pathlib.Path) -> list[dict]:
@@ -180,29 +217,54 @@ def cmd_report(args) -> int:
         "fresh `jaxlift diagnose` process, compilation included."
     )
     lines.append("")
-    lines.append("| case kind | cases | correct | undecided | wrong | crash |")
-    lines.append("|---|---:|---:|---:|---:|---:|")
+    lines.append(
+        "| case kind | cases | correct | undecided | unexplained | wrong, confident | "
+        "wrong, flagged | crash |"
+    )
+    lines.append("|---|---:|---:|---:|---:|---:|---:|---:|")
     for k, rs in kinds.items():
         c = [outcome(r) for r in rs]
+        wc = sum(outcome(r) == "wrong" and confident(r) for r in rs)
         lines.append(
             f"| {k} | {len(rs)} | {c.count('correct')} | {c.count('undecided')} | "
-            f"{c.count('wrong')} | {c.count('crash')} |"
+            f"{c.count('unexplained')} | {wc} | {c.count('wrong') - wc} | {c.count('crash')} |"
         )
+    lines += [
+        "",
+        "*wrong, flagged*: a wrong effect named on the way by a diagnosis that ends "
+        "`unexplained` (the report lists it as a possible stand-in). *wrong, confident*: "
+        "a wrong name without reservation.",
+    ]
     single = kinds["single"]
     visible = [r for r in single if r.get("baseline_chi2n", 0) >= 1.5]
     if visible:
         c = [outcome(r) for r in visible]
+        wc = sum(outcome(r) == "wrong" and confident(r) for r in visible)
         lines += [
             "",
-            f"Single effects whose baseline misfit is at least 1.5x the noise floor "
-            f"(chi2/N >= 1.5): {len(visible)} cases, correct {c.count('correct')} "
-            f"({c.count('correct') / len(visible):.0%}), wrong-but-confident "
-            f"{c.count('wrong')} ({c.count('wrong') / len(visible):.0%}).",
+            f"Acceptance, single effects whose baseline misfit is at least 1.5x the noise "
+            f"floor (chi2/N >= 1.5): {len(visible)} cases, correct {c.count('correct')} "
+            f"({c.count('correct') / len(visible):.0%}; target >= 95 %), wrong-but-confident "
+            f"{wc} ({wc / len(visible):.0%}; target <= 2 %).",
         ]
     nulls = kinds["null"]
     if nulls:
         fa = sum(outcome(r) != "correct" for r in nulls)
-        lines += ["", f"False alarms on null cases: {fa} of {len(nulls)}."]
+        lines += [
+            "",
+            f"Null cases: verdict `none` in {len(nulls) - fa} of {len(nulls)} "
+            f"({(len(nulls) - fa) / len(nulls):.0%}; target >= 95 %).",
+        ]
+    pairs = kinds["pair"]
+    if pairs:
+        ok = sum(outcome(r) == "correct" for r in pairs)
+        lines += [
+            "",
+            f"Pairs: both found and nothing else kept in {ok} of {len(pairs)} "
+            f"({ok / len(pairs):.0%}; target >= 80 %).",
+        ]
+    commits = sorted({r.get("commit", "?") for r in results})
+    lines += ["", f"jaxlift commit(s) the cases ran on: {', '.join(commits)}."]
     lines += ["", "| case | hidden | size | baseline chi2/N | found | final | outcome | time [s] |"]
     lines.append("|---|---|---|---:|---|---|---|---:|")
     for r in results:
@@ -231,7 +293,8 @@ def cmd_report(args) -> int:
         plt.close(fig)
         found_sizes = sorted(s for s, o in zip(sizes, ok) if o)
         lines.append(
-            f"- `{e}`: {sum(ok)} of {len(rs)} found; smallest size found {found_sizes[0]:.3g}"
+            f"- `{e}`: {sum(ok)} of {len(rs)} found; smallest size found {found_sizes[0]:.3g}; "
+            f"{size_at_90(sizes, ok)}"
             if found_sizes
             else f"- `{e}`: 0 of {len(rs)} found"
         )
