@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import base64
 import math
 import os
 
@@ -58,7 +59,7 @@ def test_report_writes_markdown_and_html(tmp_path):
     assert "![Residuals of the fit](figures/residuals.png)" in md
     assert "The **baseline** misses" in md
 
-    # html: standalone, escaped, tables, relative <img>
+    # html: standalone, escaped, tables, figures embedded
     assert ht.startswith("<!DOCTYPE html>")
     assert "<style>" in ht and "</html>" in ht
     assert "<title>Calibration &lt;of&gt; lift_500kg</title>" in ht
@@ -72,7 +73,9 @@ def test_report_writes_markdown_and_html(tmp_path):
     assert '<td class="num">10.50</td>' in ht
     assert "<td>a|b</td>" in ht
     assert "<caption>RMS errors per group</caption>" in ht
-    assert '<img src="figures/residuals.png" alt="Residuals of the fit">' in ht
+    png = base64.b64encode((out / "figures" / "residuals.png").read_bytes()).decode("ascii")
+    assert f'<img src="data:image/png;base64,{png}" alt="Residuals of the fit">' in ht
+    assert "figures/residuals.png" not in ht  # a mailed report needs no folder beside it
     assert "<figcaption>Residuals of the fit</figcaption>" in ht
     assert "<2 Hz>" not in ht and "<of>" not in ht
 
@@ -93,6 +96,9 @@ def test_report_is_deterministic_and_links_relative(tmp_path, monkeypatch):
     md = open(rep.write("out")[0], encoding="utf-8").read()
     assert "![x](fig%20one.png)" in md
     assert "![y](figures/later.png)" in md
+    html_text = open(rep.write("out")[1], encoding="utf-8").read()
+    assert 'src="figures/later.png"' in html_text  # not written yet: linked
+    assert html_text.count("data:image/png;base64,") == 1  # the one that exists: embedded
 
 
 def test_format_value_and_inline_markdown():

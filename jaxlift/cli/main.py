@@ -197,6 +197,59 @@ def load_user_effects(paths) -> list[str]:
     return names
 
 
+#: The packages whose versions every output folder records.
+PROVENANCE_PACKAGES = (
+    "jaxlift", "jax", "jaxlib", "diffrax", "optimistix", "equinox", "lineax", "emcee",
+    "arviz", "numpy", "scipy", "matplotlib", "optax",
+)  # fmt: skip
+
+
+def write_provenance(args, argv, rc: int) -> None:
+    """``provenance.json`` in the command's output folder (``--out``; beside the file
+    for ``simulate``): the command line, package versions, seeds, and the SHA-256 of
+    every input file (logs, parameter and effect files), so that a result can be
+    traced to what made it."""
+    import datetime
+    import hashlib
+    import json
+    import platform
+    from importlib.metadata import PackageNotFoundError
+
+    out = getattr(args, "out", None)
+    if not out:
+        return
+    folder = pathlib.Path(out)
+    if not folder.is_dir():
+        folder = folder.parent
+    if not folder.is_dir():
+        return
+    inputs = []
+    for key in ("log", "logs", "validate", "params", "effect_file", "gains"):
+        value = getattr(args, key, None)
+        for path in value if isinstance(value, list) else [value]:
+            if path and pathlib.Path(path).is_file():
+                digest = hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
+                inputs.append({"path": str(path), "sha256": digest})
+    versions = {}
+    for pkg in PROVENANCE_PACKAGES:
+        try:
+            versions[pkg] = version(pkg)
+        except PackageNotFoundError:
+            versions[pkg] = None
+    seeds = {k: v for k, v in vars(args).items() if "seed" in k}
+    record = {
+        "command": ["jaxlift", *(sys.argv[1:] if argv is None else argv)],
+        "exit_code": rc,
+        "finished_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "versions": versions,
+        "seeds": seeds,
+        "inputs": inputs,
+    }
+    (folder / "provenance.json").write_text(json.dumps(record, indent=1) + "\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -207,7 +260,9 @@ def main(argv: list[str] | None = None) -> int:
         user = load_user_effects(getattr(args, "effect_file", []))
         if user:
             print(f"user effects: {', '.join(user)}", flush=True)
-        return args.func(args)
+        rc = args.func(args)
+        write_provenance(args, argv, rc)
+        return rc
     except (jl.LogError, jl.ParameterError, jl.SimulationError, ValueError) as err:
         print(f"jaxlift {args.command}: error: {err}", file=sys.stderr)
         return 2

@@ -17,6 +17,7 @@ content gives the same bytes (no time stamps).  Nothing here prints.
 
 from __future__ import annotations
 
+import base64
 import html
 import math
 import os
@@ -228,8 +229,8 @@ class Report:
         return "\n\n".join(parts) + "\n"
 
     def to_html(self, out_dir: str | os.PathLike = ".") -> str:
-        """The report as a standalone HTML document (inline CSS; images linked relative to
-        ``out_dir``)."""
+        """The report as a standalone HTML document: inline CSS, figures embedded as
+        base64 PNG (those not written yet linked relative to ``out_dir``)."""
         out = Path(out_dir)
         e = html.escape
         body = [f"<h1>{markdown_inline_to_html(self.title)}</h1>"]
@@ -259,7 +260,16 @@ class Report:
                 t.append("</tbody></table>")
                 body.append("\n".join(t))
             elif kind == "figure":
-                src = e(urllib.parse.quote(self._link(it["path"], out)), quote=True)
+                # embedded, so that a report mailed to a colleague arrives with its
+                # pictures; linked (relative) only if the file is not there yet
+                png = Path(it["path"])
+                if not png.is_absolute() and not png.exists():
+                    png = out / png
+                if png.is_file():
+                    data = base64.b64encode(png.read_bytes()).decode("ascii")
+                    src = f"data:image/png;base64,{data}"
+                else:
+                    src = e(urllib.parse.quote(self._link(it["path"], out)), quote=True)
                 alt = e(it["caption"], quote=True)
                 cap = (
                     f"<figcaption>{markdown_inline_to_html(it['caption'])}</figcaption>"
