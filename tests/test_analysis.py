@@ -390,3 +390,25 @@ def test_plots_and_zoom_windows(tmp_path):
     assert any(a <= 15 and b >= 15 for a, b in wins)
     assert any(a <= tc <= b for a, b in wins)
     assert any(a <= 34 <= b or a <= 7 <= b for a, b in wins)
+
+
+def test_ljung_box_on_innovations():
+    """The posterior's check of its AR(1) noise model: innovations of an AR(1) process
+    are white; those of an AR(2) process, whitened as if AR(1), are not."""
+    from jaxlift.analysis.residuals import ljung_box
+
+    rng = np.random.default_rng(0)
+    n = 6000
+    w = rng.standard_normal(n)
+    ar1 = np.zeros(n)
+    ar2 = np.zeros(n)
+    for t in range(2, n):
+        ar1[t] = 0.7 * ar1[t - 1] + w[t]
+        ar2[t] = 0.5 * ar2[t - 1] + 0.3 * ar2[t - 2] + w[t]
+    for x, white in ((ar1, True), (ar2, False)):
+        rho = float(x[1:] @ x[:-1] / (x[:-1] @ x[:-1]))
+        q, dof, p = ljung_box(x[1:] - rho * x[:-1], 20, fitted=1)
+        assert dof == 19
+        assert (p > 0.01) == white, (q, p)
+    q, dof, p = ljung_box(w, 20)
+    assert dof == 20 and 0.01 < p <= 1.0

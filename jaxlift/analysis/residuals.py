@@ -59,6 +59,23 @@ def _chi2_sf(q: float, dof: int) -> float:
     return 0.5 * math.erfc(zz / math.sqrt(2.0))
 
 
+def ljung_box(x: np.ndarray, lags: int = 20, fitted: int = 0) -> tuple[float, int, float]:
+    """Ljung--Box test of whiteness: ``Q = n (n + 2) sum_k acf_k^2 / (n - k)`` over lags
+    ``1..lags``, against chi^2 with ``lags - fitted`` degrees of freedom (``fitted``: the
+    number of parameters of a model whose innovations ``x`` are, e.g. 1 for AR(1)).
+    Returns ``(Q, degrees of freedom, p-value)``; a small p says ``x`` is not white."""
+    x = np.asarray(x, dtype=np.float64)
+    m = min(lags, x.size - 2)
+    if m < 1:
+        return math.nan, 0, math.nan
+    acf = _acf(x, m)
+    n = x.size
+    ks = np.arange(1, m + 1)
+    q = float(n * (n + 2) * np.sum(acf[1 : m + 1] ** 2 / (n - ks)))
+    dof = max(m - fitted, 1)
+    return q, dof, _chi2_sf(q, dof)
+
+
 def _diagnose(r: np.ndarray, sigma: float, dt: float, max_lag_s: float, lb_lags: int) -> dict:
     z = r / sigma
     max_lag = max(1, int(round(max_lag_s / dt)))

@@ -48,6 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
+from ..analysis.residuals import ljung_box
 from ..calibrate.experiment import PARAMETER_SETS, Experiment, make_experiments, resolve_free
 from ..calibrate.fit import fit
 from ..model.build import Model, all_param_infos, make_effects, model_params, with_params
@@ -57,6 +58,11 @@ from ..model.params import ParameterError, ParamInfo, from_unconstrained, to_unc
 from ..model.plant import Plant
 from ..model.simulate import simulate, x64_check
 from .priors import LogNormal, Prior, default_prior, prior_from_json, prior_to_json
+
+#: Lags of the Ljung--Box test of the noise model's innovations (0.2 s at 100 Hz), and
+#: the p-value below which they are called not white (a warning, in the report too).
+INNOVATION_LAGS = 20
+INNOVATION_P_MIN = 0.01
 
 #: Names of the per-signal noise scale factors (sampled with ``sample_noise=True``).
 SETTINGS_FILE = "posterior_settings.json"  # a posterior directory's settings (resume, draws)
@@ -249,6 +255,7 @@ def prepare_posterior(
     rho = np.zeros((len(experiments), 3))
     scale = np.ones((len(experiments), 3))
     chi2n = {}
+    checks = []
     for i, exp in enumerate(experiments):
         sol = simulate(plant, effs_v, exp.inputs).check(f"simulating {exp.name}")
         r = np.asarray(exp.scaled_residuals(sol))
@@ -257,6 +264,13 @@ def prepare_posterior(
         if likelihood == "ar1":
             for k in exp.signals:
                 rho[i, k], scale[i, k] = _ar1_stats(r[k])
+        for k in exp.signals:  # the noise model's own assumption, checked
+            e_k = r[k][1:] - rho[i, k] * r[k][:-1]
+            q, dof, p = ljung_box(e_k, INNOVATION_LAGS, fitted=1 if likelihood == "ar1" else 0)
+            checks.append(
+                {"log": exp.name, "signal": ("height", "speed", "pressure")[k], "q": q,
+                 "dof": dof, "p": p, "white": bool(p >= INNOVATION_P_MIN)}
+            )  # fmt: skip
     all_names = list(names) + (
         [n for k, n in enumerate(NOISE_NAMES) if any(k in e.signals for e in experiments)]
         if sample_noise
@@ -270,7 +284,16 @@ def prepare_posterior(
         "rho1_pooled": ls.rho1,
         "stderr": ls.stderr,
         "converged": ls.converged,
+        "innovation_check": checks,
     }
+    bad = [c for c in checks if not c["white"]]
+    if bad:
+        say(
+            "warning: the noise model leaves autocorrelation in the innovations "
+            + ", ".join(f"{c['log']} {c['signal']} (Ljung-Box p {c['p']:.2g})" for c in bad)
+            + ": the intervals assume more independent information than the residuals "
+            "hold and may be too narrow; --sample-noise widens them by the residuals' scale"
+        )
     problem = PosteriorProblem(
         names=tuple(all_names),
         infos=infos,

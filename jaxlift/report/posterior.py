@@ -267,6 +267,7 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
         "at the prior's width)."
     )
     sig = ("height", "speed", "pressure")
+    checks = {(c["log"], c["signal"]): c for c in problem.ls_info.get("innovation_check", [])}
     rep.table(
         [
             {
@@ -275,13 +276,26 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
                 "chi2/N at LS": problem.ls_info["chi2_per_signal"][e.name][sig[k]],
                 "rho": float(problem.rho[i, k]),
                 "innovation scale / sensor noise": float(problem.scale[i, k]),
+                "Ljung-Box p (innovations)": checks.get((e.name, sig[k]), {}).get("p"),
             }
             for i, e in enumerate(problem.experiments)
             for k in e.signals
         ],
         floatfmt=".3g",
-        caption="Residual noise model per log and signal.",
+        caption="Residual noise model per log and signal; the last column tests whether "
+        "the model's innovations are white up to lag 20 (0.2 s).",
     )
+    bad = [c for c in checks.values() if not c["white"]]
+    if bad:
+        rep.text(
+            "**Warning: the noise model does not hold.** The innovations of "
+            + ", ".join(f"`{c['log']}` {c['signal']} (p {c['p']:.2g})" for c in bad)
+            + " are autocorrelated beyond what the noise model describes (Ljung-Box, 20 "
+            "lags, p < 0.01): the likelihood counts more independent information than the "
+            "residuals hold, so the intervals may be too narrow. `--sample-noise` widens "
+            "them by the residuals' own scale; a model error shows here too (see the "
+            "diagnosis)."
+        )
     rep.heading("Convergence")
     rep.text(
         f"{run.iteration} steps x {run.n_walkers} walkers; acceptance fraction "
