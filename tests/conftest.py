@@ -1,8 +1,13 @@
-"""Strict test configuration: float64 everywhere, warnings from jaxlift are errors."""
+"""Strict test configuration: float64 everywhere, warnings from jaxlift are errors,
+and no persistent compilation cache (the command line's, docs/data.md): tests that
+call the CLI must not read or fill a user's cache, and must measure a cold start."""
+
+import os
 
 import jax
 import pytest
 
+os.environ["JAXLIFT_CACHE"] = "off"
 jax.config.update("jax_enable_x64", True)
 
 

@@ -18,3 +18,15 @@ def test_simulate_writes_provenance(tmp_path):
     assert rec["versions"]["jaxlift"] and rec["versions"]["jax"] and rec["versions"]["diffrax"]
     digest = hashlib.sha256(open(log, "rb").read()).hexdigest()
     assert rec["inputs"] == [{"path": log, "sha256": digest}]
+
+
+def test_compilation_cache_folder(monkeypatch, tmp_path):
+    from jaxlift.cli.common import cache_dir
+
+    monkeypatch.setenv("JAXLIFT_CACHE", "off")
+    assert cache_dir() is None
+    monkeypatch.setenv("JAXLIFT_CACHE", str(tmp_path / "c"))
+    assert cache_dir() == str(tmp_path / "c")
+    monkeypatch.delenv("JAXLIFT_CACHE")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert cache_dir() == str(tmp_path / "jaxlift" / "jax")
