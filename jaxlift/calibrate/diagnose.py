@@ -252,86 +252,101 @@ def diagnose(
     n_held = sum(e.n_residuals for e in make_experiments(validate_logs))
     bic0 = _bic(base.chi2, len(base.free), base.n_residuals, base.inflation)
     to_confirm = [s for s in ranking if s.z > z_threshold][:n_confirm]  # None: all
+    held_before: list = []  # the current model's held-out error, computed once
+
+    def confirm(to_confirm: list[EffectScreen]) -> list[tuple[EffectScreen, FitResult]]:
+        """Refit each candidate from its starts; the ones that pass both tests."""
+        guesses = {s.effect: refit_starts(s.effect, s.predicted_value) for s in to_confirm}
+        # every candidate's first start before any second one: two threads on the two
+        # starts of one candidate would wait on the same compilation
+        most = max((len(g) for g in guesses.values()), default=0)
+        jobs = [
+            (s, guesses[s.effect][k])
+            for k in range(most)
+            for s in to_confirm
+            if len(guesses[s.effect]) > k
+        ]
+
+        def refit(job) -> tuple[FitResult | None, float | None, str | None]:
+            if job is None:  # the current model's held-out error
+                if held_before:
+                    return None, held_before[0], None
+                return None, _heldout_chi2(base.params, base.effects, validate_logs), None
+            s, guess = job
+            init = {**base.params, **guess}
+            where = ", ".join(f"{k} = {v:g}" for k, v in guess.items())
+            try:
+                res = fit(logs, effects=[*base.effects, s.effect], free=f"{free},effects",
+                          init=init, x0_offsets=base.x0_offsets, staged=False, n_starts=1,
+                          seed=seed, workers=1)  # fmt: skip
+                if not math.isfinite(res.chi2):
+                    return None, None, f"refit from {where}: every start failed"
+                # held-out error of this refit here, in the same thread: its compilation (a
+                # new model structure) then overlaps the other refits
+                return res, _heldout_chi2(res.params, res.effects, validate_logs), None
+            except Exception as err:  # noqa: BLE001 -- one candidate's failure, reported
+                return None, None, f"refit from {where}: {type(err).__name__}: {err}"
+
+        # the refits are independent: one thread per core (_parallel.py)
+        say(f"confirming {len(to_confirm)} candidates by {len(jobs)} refits")
+        bests: dict[str, tuple[FitResult, float | None]] = {}
+        failures: dict[str, list[str]] = {}
+        results = thread_map(refit, [None, *jobs], workers)
+        _, heldout_before, _ = next(results)
+        held_before[:] = [heldout_before]
+        for (s, _), (res, held, err) in zip(jobs, results):
+            if err is not None:
+                failures.setdefault(s.effect, []).append(err)
+            elif s.effect not in bests or res.chi2 < bests[s.effect][0].chi2:
+                bests[s.effect] = (res, held)
+        passing = []
+        for s in to_confirm:
+            infos = EFFECTS[s.effect].param_infos()
+            if s.effect not in bests:
+                s.failure = "; ".join(failures.get(s.effect, ["no refit"]))
+                say(f"confirm {s.effect}: failed ({s.failure})")
+                continue
+            best, heldout_after = bests[s.effect]
+            bic1 = _bic(best.chi2, len(best.free), best.n_residuals, base.inflation)
+            s.confirmed_chi2 = best.chi2
+            s.delta_bic = bic1 - bic0
+            s.fitted_params = {k: best.params[k] for k in infos}
+            s.fitted_stderr = {k: best.stderr[k] for k in infos if k in best.stderr}
+            s.heldout_chi2_before = heldout_before
+            s.heldout_chi2_after = heldout_after
+            say(
+                f"confirm {s.effect}: chi2/N {base.chi2 / base.n_residuals:.3g} -> "
+                f"{best.chi2 / best.n_residuals:.3g}, dBIC {s.delta_bic:.1f}"
+            )
+            # the held-out logs must be predicted better, by more than their noise: the
+            # chi2 drop over the held-out samples, counted as effective samples like the BIC,
+            # beyond the same threshold (a spurious extra effect moves it by a few units, a
+            # real one by hundreds to thousands; measured on the test matrix)
+            held_ok = (
+                s.heldout_chi2_after is None
+                or s.heldout_chi2_before is None
+                or (s.heldout_chi2_after - s.heldout_chi2_before) * n_held / base.inflation
+                < -bic_threshold
+            )
+            if s.delta_bic < -bic_threshold and held_ok:
+                passing.append((s, best))
+        return passing
+
+    passing = confirm(to_confirm)
     misfit = remaining_misfit(base)
     rest = [s for s in ranking if s not in to_confirm and math.isfinite(s.z)]
-    if misfit.significant and rest and n_confirm is None:
+    if not passing and misfit.significant and rest and n_confirm is None:
         # the screen is local (a secant near the nesting value, against s^2 that holds
         # the model error): with an error this far above the noise it can miss an
         # effect that is large (measured: breakaway friction of 1.7 kN scored z = -1.9,
         # the error chi2/N 9.1; a stick-slip with a mast mode, chi2/N 3.5, every z < 3).
-        # Then every candidate is refitted from its grid, and the refits' BIC and
-        # held-out checks decide as always
-        to_confirm = [*to_confirm, *rest]
+        # When no screened candidate passes, the others are refitted from their grids
+        # too, and the refits' BIC and held-out checks decide as always
         say(
-            f"the error is far above the noise ({misfit.describe()}): confirming every "
-            "candidate by refits, whatever its score"
+            f"nothing passed, but the error is far above the noise ({misfit.describe()}): "
+            f"confirming the other {len(rest)} candidates by refits, whatever their score"
         )
-    guesses = {s.effect: refit_starts(s.effect, s.predicted_value) for s in to_confirm}
-    # every candidate's first start before any second one: two threads on the two
-    # starts of one candidate would wait on the same compilation
-    most = max((len(g) for g in guesses.values()), default=0)
-    jobs = [(s, g[k]) for k in range(most) for s in to_confirm if len(g := guesses[s.effect]) > k]
-
-    def refit(job) -> tuple[FitResult | None, float | None, str | None]:
-        if job is None:  # the current model's held-out error
-            return None, _heldout_chi2(base.params, base.effects, validate_logs), None
-        s, guess = job
-        init = {**base.params, **guess}
-        where = ", ".join(f"{k} = {v:g}" for k, v in guess.items())
-        try:
-            res = fit(logs, effects=[*base.effects, s.effect], free=f"{free},effects",
-                      init=init, x0_offsets=base.x0_offsets, staged=False, n_starts=1,
-                      seed=seed, workers=1)  # fmt: skip
-            if not math.isfinite(res.chi2):
-                return None, None, f"refit from {where}: every start failed"
-            # held-out error of this refit here, in the same thread: its compilation (a
-            # new model structure) then overlaps the other refits
-            return res, _heldout_chi2(res.params, res.effects, validate_logs), None
-        except Exception as err:  # noqa: BLE001 -- one candidate's failure, reported
-            return None, None, f"refit from {where}: {type(err).__name__}: {err}"
-
-    # the refits are independent: one thread per core (_parallel.py)
-    say(f"confirming {len(to_confirm)} candidates by {len(jobs)} refits")
-    bests: dict[str, tuple[FitResult, float | None]] = {}
-    failures: dict[str, list[str]] = {}
-    results = thread_map(refit, [None, *jobs], workers)
-    _, heldout_before, _ = next(results)
-    for (s, _), (res, held, err) in zip(jobs, results):
-        if err is not None:
-            failures.setdefault(s.effect, []).append(err)
-        elif s.effect not in bests or res.chi2 < bests[s.effect][0].chi2:
-            bests[s.effect] = (res, held)
-    passing = []
-    for s in to_confirm:
-        infos = EFFECTS[s.effect].param_infos()
-        if s.effect not in bests:
-            s.failure = "; ".join(failures.get(s.effect, ["no refit"]))
-            say(f"confirm {s.effect}: failed ({s.failure})")
-            continue
-        best, heldout_after = bests[s.effect]
-        bic1 = _bic(best.chi2, len(best.free), best.n_residuals, base.inflation)
-        s.confirmed_chi2 = best.chi2
-        s.delta_bic = bic1 - bic0
-        s.fitted_params = {k: best.params[k] for k in infos}
-        s.fitted_stderr = {k: best.stderr[k] for k in infos if k in best.stderr}
-        s.heldout_chi2_before = heldout_before
-        s.heldout_chi2_after = heldout_after
-        say(
-            f"confirm {s.effect}: chi2/N {base.chi2 / base.n_residuals:.3g} -> "
-            f"{best.chi2 / best.n_residuals:.3g}, dBIC {s.delta_bic:.1f}"
-        )
-        # the held-out logs must be predicted better, by more than their noise: the
-        # chi2 drop over the held-out samples, counted as effective samples like the BIC,
-        # beyond the same threshold (a spurious extra effect moves it by a few units, a
-        # real one by hundreds to thousands; measured on the test matrix)
-        held_ok = (
-            s.heldout_chi2_after is None
-            or s.heldout_chi2_before is None
-            or (s.heldout_chi2_after - s.heldout_chi2_before) * n_held / base.inflation
-            < -bic_threshold
-        )
-        if s.delta_bic < -bic_threshold and held_ok:
-            passing.append((s, best))
+        passing = confirm(rest)
     winner, between, reasons = decide([s for s, _ in passing], bic_threshold)
     winner_fit = next((f for s, f in passing if s.effect == winner), None)
     if winner == "undecided":
