@@ -80,11 +80,16 @@ def test_a_law_outside_the_eight_is_unexplained_not_named(tmp_path):
     finally:
         EFFECTS.pop("turbulent_drag")
     out = tmp_path / "diag"
-    assert main(["diagnose", *logs, "--validate", held, "--out", str(out)]) == 0
+    # at most one effect added (two diagnosis steps): the CI's time; without the bound
+    # the iteration adds stand-ins that each explain a few per cent (measured: hose
+    # compliance 21 %, then a mast mode 5 %), still ending `unexplained`
+    argv = ["diagnose", *logs, "--validate", held, "--max-effects", "1", "--out", str(out)]
+    assert main(argv) == 0
     d = json.loads((out / "diagnosis.json").read_text())
     assert d["final_verdict"] == "unexplained", (d["verdicts"], d["final_verdict"])
     misfit = d["remaining_misfit"]
     assert misfit["significant"] and misfit["chi2n"] > 1.2 and misfit["heldout_chi2n"] > 1.2
-    for step in d["steps"][:-1]:  # whatever was added explains little of the error
-        assert step["explained_share"] < 0.5, step["verdict"]
-        assert step["verdict"] in " ".join(d["reasons"])
+    for step in d["steps"]:  # whatever was added explains little of the error
+        if step["explained_share"] is not None:
+            assert step["explained_share"] < 0.5, step["verdict"]
+            assert step["verdict"] in " ".join(d["reasons"])

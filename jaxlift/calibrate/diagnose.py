@@ -637,11 +637,14 @@ def diagnose_iteratively(
             effects = [e for e in effects if e != name]
             base = reduced
     last = steps[-1]
-    if last.verdict == "none":
+    named = last.verdict not in NOT_AN_EFFECT  # the loop ran out of steps on a name
+    if last.verdict == "none" or named:
         usable, _ = usable_heldout(logs, validate_logs)
-        last.misfit = remaining_misfit(last.base_fit, usable)
+        final_model = last.winner_fit if named else last.base_fit
+        last.misfit = remaining_misfit(final_model, usable)
         if last.misfit.significant:
-            last.verdict = "unexplained"
+            if not named:
+                last.verdict = "unexplained"
             last.reasons = [
                 "none of the candidate effects explains what remains: "
                 + last.misfit.describe()
@@ -649,7 +652,7 @@ def diagnose_iteratively(
             ]
             partial = [
                 f"{d.verdict} ({100 * d.explained_share():.0f} % of the model error)"
-                for d in steps[:-1]
+                for d in (steps if named else steps[:-1])
                 if d.explained_share() is not None
             ]
             if partial:
@@ -666,6 +669,16 @@ def diagnose_iteratively(
 #: Verdicts that name no effect: nothing missing, cannot tell which, none of the
 #: candidates.
 NOT_AN_EFFECT = ("none", "undecided", "unexplained")
+
+
+def final_verdict(steps: Sequence[Diagnosis]) -> str:
+    """How an iterative diagnosis ended: ``none`` (nothing more is missing),
+    ``undecided`` (which of two), or ``unexplained`` (the final model still leaves an
+    error well above the noise, also when the iteration ran out of steps on a name)."""
+    last = steps[-1]
+    if last.misfit is not None and last.misfit.significant:
+        return "unexplained"
+    return last.verdict if last.verdict in NOT_AN_EFFECT else "none"
 
 
 def found_effects(steps: Sequence[Diagnosis]) -> list[str]:

@@ -82,19 +82,20 @@ def cmd_diagnose(args) -> int:
         val,
         out_dir=args.out,
         iterate=not args.once,
+        max_effects=args.max_effects,
         n_starts=args.starts,
         seed=args.seed,
         progress=lambda line: print(line, flush=True),
     )
-    from jaxlift.calibrate.diagnose import found_effects
+    from jaxlift.calibrate.diagnose import final_verdict, found_effects
 
     found = found_effects(steps)
     print(f"verdict: {steps[0].verdict}")
     if len(steps) > 1:
         print(f"missing effects, in order: {', '.join(found) or 'none'}")
-        print(f"final verdict: {steps[-1].verdict}")
-    if steps[-1].verdict in ("undecided", "unexplained"):
-        print(f"{steps[-1].verdict}: " + "; ".join(steps[-1].reasons))
+        print(f"final verdict: {final_verdict(steps)}")
+    if final_verdict(steps) in ("undecided", "unexplained"):
+        print(f"{final_verdict(steps)}: " + "; ".join(steps[-1].reasons))
     print(f"wrote {args.out}/diagnosis.json, report.md, report.html, figures/")
     return 0
 
@@ -154,6 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
         "diagnose again until none is missing)",
     )
     p.add_argument("--starts", type=int, default=2, help="starting points of each fit")
+    p.add_argument("--max-effects", type=int, default=3, help="at most this many effects added (3)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=cmd_diagnose)

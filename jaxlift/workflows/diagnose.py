@@ -12,7 +12,7 @@ import numpy as np
 
 from ..analysis.oscillation import oscillation_table, zoom_windows
 from ..analysis.regimes import error_table, segment_log
-from ..calibrate.diagnose import diagnose, diagnose_iteratively, found_effects
+from ..calibrate.diagnose import diagnose, diagnose_iteratively, final_verdict, found_effects
 from ..calibrate.fit import estimate_x0_offsets
 from ..model.log import Log
 from ..report.analysis_plots import plot_oscillations_vs_height
@@ -68,6 +68,7 @@ def run_diagnose(
     *,
     out_dir: str | pathlib.Path,
     iterate: bool = True,
+    max_effects: int = 3,
     n_starts: int = 2,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
@@ -77,8 +78,9 @@ def run_diagnose(
 
     if iterate:
         steps = diagnose_iteratively(
-            logs, validate_logs, n_starts=n_starts, seed=seed, progress=progress
-        )
+            logs, validate_logs, max_effects=max_effects, n_starts=n_starts, seed=seed,
+            progress=progress,
+        )  # fmt: skip
     else:
         steps = [diagnose(logs, validate_logs, n_starts=n_starts, seed=seed, progress=progress)]
     out = pathlib.Path(out_dir)
@@ -117,7 +119,7 @@ def run_diagnose(
         "verdicts": verdicts,
         # how the iteration ended: "none" (nothing more is missing), "undecided" (which
         # of two) or "unexplained" (something none of the candidates describes)
-        "final_verdict": last.verdict,
+        "final_verdict": final_verdict(steps),
         "remaining_misfit": None if last.misfit is None else last.misfit.as_dict(),
         "heldout_excluded": first.heldout_excluded,
         "undecided_between": last.undecided_between,
@@ -145,7 +147,7 @@ def run_diagnose(
         )
         + (
             " Then **unexplained**: " + "; ".join(last.reasons) + "."
-            if last.verdict == "unexplained"
+            if final_verdict(steps) == "unexplained"
             else ""
         )
     )
