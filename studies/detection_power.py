@@ -105,9 +105,11 @@ def _jaxlift_commit() -> str:
 
 
 def outcome(r: dict) -> str:
-    """``correct`` / ``undecided`` / ``unexplained`` / ``wrong`` / ``crash`` for one
-    result. ``undecided`` and ``unexplained`` are honest non-answers (nothing wrong
-    named, the diagnosis says it cannot tell or that something none of the candidates
+    """``correct`` / ``undecided`` / ``unexplained`` / ``missed`` / ``wrong`` /
+    ``crash`` for one result (``missed``: no wrong name, but not every hidden effect
+    found and no reservation either). ``undecided`` and ``unexplained`` are honest
+    non-answers (nothing wrong named, the diagnosis says it cannot tell or that
+    something none of the candidates
     describes is missing); a wrong name in a diagnosis that ends ``unexplained`` is
     wrong but flagged (the report lists the named effects as possible stand-ins), so
     not confident: see :func:`confident`."""
@@ -118,6 +120,8 @@ def outcome(r: dict) -> str:
         return "correct"
     if r.get("final_verdict") in ("undecided", "unexplained") and found <= hidden:
         return r["final_verdict"]
+    if found < hidden:  # nothing wrong named, a hidden effect not found (too small?)
+        return "missed"
     return "wrong"
 
 
@@ -218,16 +222,17 @@ def cmd_report(args) -> int:
     )
     lines.append("")
     lines.append(
-        "| case kind | cases | correct | undecided | unexplained | wrong, confident | "
+        "| case kind | cases | correct | undecided | unexplained | missed | wrong, confident | "
         "wrong, flagged | crash |"
     )
-    lines.append("|---|---:|---:|---:|---:|---:|---:|---:|")
+    lines.append("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for k, rs in kinds.items():
         c = [outcome(r) for r in rs]
         wc = sum(outcome(r) == "wrong" and confident(r) for r in rs)
         lines.append(
             f"| {k} | {len(rs)} | {c.count('correct')} | {c.count('undecided')} | "
-            f"{c.count('unexplained')} | {wc} | {c.count('wrong') - wc} | {c.count('crash')} |"
+            f"{c.count('unexplained')} | {c.count('missed')} | {wc} | {c.count('wrong') - wc} | "
+            f"{c.count('crash')} |"
         )
     lines += [
         "",
