@@ -4,6 +4,8 @@ registered with checks that name what is wrong, then simulated, fitted, sampled,
 and diagnosed like the built-in eight."""
 
 import json
+import subprocess
+import sys
 import textwrap
 
 import jax
@@ -203,9 +205,12 @@ def test_user_effect_is_diagnosed_like_the_built_in_ones(drag_file, tmp_path):
     held = _log(tmp_path / "held.csv", 1000.0, 5, x0=0.0)
     EFFECTS.pop("turbulent_drag")  # the command must load it itself
     out = tmp_path / "diag"
-    rc = main(["diagnose", *logs, "--validate", held, "--once", "--out", str(out),
-               "--effect-file", str(drag_file)])  # fmt: skip
-    assert rc == 0
+    # in its own process, as a user runs it (and without the test session's memory)
+    argv = ["diagnose", *logs, "--validate", held, "--once", "--out", str(out),
+            "--effect-file", str(drag_file)]  # fmt: skip
+    proc = subprocess.run([sys.executable, "-m", "jaxlift", *argv], capture_output=True,
+                          text=True, check=False)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
     d = json.loads((out / "diagnosis.json").read_text())
     ranking = [(r["effect"], r["delta_bic"]) for r in d["steps"][0]["ranking"]]
     assert d["verdict"] == "turbulent_drag", ranking

@@ -277,7 +277,7 @@ def diagnose(
             where = ", ".join(f"{k} = {v:g}" for k, v in guess.items())
             try:
                 res = fit(logs, effects=[*base.effects, s.effect], free=f"{free},effects",
-                          init=init, x0_offsets=base.x0_offsets, staged=False, n_starts=1,
+                          init=init, staged=False, n_starts=1,
                           seed=seed, workers=1)  # fmt: skip
                 if not math.isfinite(res.chi2):
                     return None, None, f"refit from {where}: every start failed"
@@ -704,8 +704,7 @@ def backward_check(
         own = set(EFFECTS[name].param_infos())
         init = {k: v for k, v in model.params.items() if k not in own}
         return fit(logs, effects=rest, free=f"{free},effects" if rest else free, init=init,
-                   x0_offsets=model.x0_offsets, staged=False, n_starts=1, seed=seed,
-                   workers=1)  # fmt: skip
+                   staged=False, n_starts=1, seed=seed, workers=1)  # fmt: skip
 
     best = None
     for name, res in zip(candidates, thread_map(refit, candidates, workers)):
