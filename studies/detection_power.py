@@ -42,7 +42,9 @@ import detection_generator as gen  # noqa: E402
 EFFECTS = gen.EFFECTS
 
 
-def run_case(spec: dict, data_dir: pathlib.Path, out_dir: pathlib.Path) -> dict:
+def run_case(
+    spec: dict, data_dir: pathlib.Path, out_dir: pathlib.Path, time_limit: float | None = None
+) -> dict:
     """Generate (if needed) and diagnose one case; write and return ``result.json``."""
     gen.write_case(spec, data_dir, verbose=False)
     case = data_dir / spec["case_id"]
@@ -56,12 +58,19 @@ def run_case(spec: dict, data_dir: pathlib.Path, out_dir: pathlib.Path) -> dict:
     # one process per case, as a user runs it: a long-lived process that diagnoses case
     # after case keeps every compiled model (each log length is a new shape) and ran out
     # of memory after 6 cases (LLVM "Cannot allocate memory", 24 GiB)
-    proc = subprocess.run(
-        [sys.executable, "-m", "jaxlift", *argv], capture_output=True, text=True, check=False
-    )
-    rc, crash = proc.returncode, None
-    if rc not in (0, 1, 2):
-        crash = f"exit code {rc} (killed or crashed)"
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "jaxlift", *argv],
+            capture_output=True, text=True, check=False, timeout=time_limit,
+        )  # fmt: skip
+        rc, crash = proc.returncode, None
+        if rc not in (0, 1, 2):
+            crash = f"exit code {rc} (killed or crashed)"
+    except subprocess.TimeoutExpired as e:
+        # a case that does not finish within the study's limit is a failure, reported
+        # in the crash column with this reason (the user would have given up too)
+        proc = subprocess.CompletedProcess(e.cmd, None, _text(e.stdout), _text(e.stderr))
+        rc, crash = None, f"stopped at the study's time limit of {time_limit:.0f} s"
     err = io.StringIO(proc.stderr)
     wall = time.perf_counter() - t0
     result = {
@@ -89,6 +98,10 @@ def run_case(spec: dict, data_dir: pathlib.Path, out_dir: pathlib.Path) -> dict:
         )
     (res_dir / "result.json").write_text(json.dumps(result, indent=1))
     return result
+
+
+def _text(b) -> str:
+    return b.decode(errors="replace") if isinstance(b, bytes) else (b or "")
 
 
 def _jaxlift_commit() -> str:
@@ -142,7 +155,7 @@ def cmd_run(args) -> int:
     for spec in tqdm(cases, desc="detection study", unit="case"):
         if (out / spec["case_id"] / "result.json").exists():
             continue
-        r = run_case(spec, data, out)
+        r = run_case(spec, data, out, time_limit=args.time_limit)
         tqdm.write(
             f"{spec['case_id']}: hidden {'+'.join(r['hidden']) or 'none'} -> "
             f"{'+'.join(r.get('found', [])) or r.get('final_verdict', r.get('crash'))} "
@@ -322,6 +335,10 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--seed", type=int, default=0, help="seed of the case list")
     r.add_argument("--cases", type=int, default=100, help="the first N cases of the list")
     r.add_argument("--only", nargs="*", help="case ids to run")
+    r.add_argument(
+        "--time-limit", type=float, default=1200.0,
+        help="seconds one case may take before it is stopped and counted as failed",
+    )  # fmt: skip
     r.set_defaults(func=cmd_run)
     q = sub.add_parser("report", help="summarise the results")
     q.add_argument("--out", default="runs/detection", help="results of `run`")
