@@ -610,8 +610,11 @@ def make_sequence(
     x0: float,
     m_load: float,
     top_scale: float = 1.0,
+    duration_range: tuple[float, float] | None = None,
 ) -> dict:
-    """A pwm sequence of ``style`` from ``x0`` that lifts to about ``top`` (predicted)."""
+    """A pwm sequence of ``style`` from ``x0`` that lifts to about ``top`` (predicted).
+    ``duration_range`` [s] overrides the style's range of lengths (the fleet study's
+    shorter logs)."""
     start_bottom = x0 <= 0.0
     if style == "thesis":
         lo, hi = (100.0, 150.0) if start_bottom else (60.0, 110.0)
@@ -620,6 +623,8 @@ def make_sequence(
         lo, hi = 60.0, 150.0
         top = float(rng.uniform(max(x0 + 0.8, 2.0), 4.2))
     top = x0 + (top - x0) * top_scale
+    if duration_range is not None:
+        lo, hi = duration_range
     duration = float(rng.uniform(lo, hi))
     spec = _style_sections(style, rng, duration)
     _, _, x_raw = _render(P, spec["sections"], spec["ramp_s"], x0, 1e9, m_load, 1.0, False)
@@ -788,8 +793,9 @@ def generate_log(spec: dict, log: dict, li: int, max_attempts: int = 8) -> dict:
     for attempt in range(max_attempts):
         rng = np.random.default_rng([spec["case_seed"], li, attempt])
         seq = make_sequence(
-            P, log["style"], rng, log["x0_m"], log["load_kg"], top_scale=0.93**attempt
-        )
+            P, log["style"], rng, log["x0_m"], log["load_kg"], top_scale=0.93**attempt,
+            duration_range=log.get("duration_range_s"),
+        )  # fmt: skip
         load = np.full_like(seq["ts"], log["load_kg"])
         try:
             sim = simulate(spec["params"], seq["ts"], seq["pwm"], load, log["x0_m"])

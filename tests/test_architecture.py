@@ -13,7 +13,10 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PKG = ROOT / "jaxlift"
 # lowest first: a module may import from its own layer and the layers before it
-LAYERS = ("model", "analysis", "calibrate", "posterior", "control", "report", "workflows", "cli")
+LAYERS = (
+    "model", "analysis", "calibrate", "posterior", "control", "report", "workflows", "fleet",
+    "cli",
+)  # fmt: skip
 
 
 def _modname(path: pathlib.Path) -> str:

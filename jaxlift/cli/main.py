@@ -100,6 +100,38 @@ def cmd_diagnose(args) -> int:
     return 0
 
 
+def cmd_fleet(args) -> int:
+    from jaxlift.fleet import run_fleet
+
+    settings = {
+        "job": args.job,
+        "search": args.search,
+        "max_effects": args.max_effects,
+        "n_starts": args.starts,
+        "seed": args.seed,
+        # the workers register the user's effects themselves (their own processes)
+        "effect_files": [str(pathlib.Path(f).resolve()) for f in args.effect_file],
+    }
+    summary = run_fleet(
+        args.fleet_dir,
+        args.out,
+        settings=settings,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        retries=args.retries,
+        progress=lambda line: print(line, flush=True),
+        progress_bar=True,
+    )
+    print(
+        f"{summary['jobs']} job(s): {summary['ran']} run, {summary['skipped']} finished "
+        f"before, {summary['failed']} failed"
+    )
+    for v, flags in summary["flagged"].items():
+        print(f"{v}: " + "; ".join(flags))
+    print(f"wrote {args.out}/fleet.parquet, fleet.csv, flags.json, report.md, report.html")
+    return 1 if summary["failed"] else 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from jaxlift.model.effects import EFFECTS
 
@@ -159,6 +191,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=cmd_diagnose)
+
+    p = sub.add_parser(
+        "fleet",
+        help="diagnose every vehicle's logs (vehicle/date folders) on Dask; trends and flags",
+    )
+    p.add_argument("fleet_dir", help="folder of <vehicle>/<date>/ run folders (docs/fleet.md)")
+    p.add_argument("--out", required=True, help="output directory (re-runs skip finished jobs)")
+    p.add_argument("--workers", type=int, default=2, help="local worker processes (default 2)")
+    p.add_argument(
+        "--scheduler", default=None,
+        help="address of a running Dask scheduler (tcp://host:8786): run there instead",
+    )  # fmt: skip
+    p.add_argument("--retries", type=int, default=2, help="retries of a failed job (default 2)")
+    p.add_argument(
+        "--job", choices=["diagnose", "fit"], default="diagnose",
+        help="per job: fit and diagnose (default), or the baseline fit only",
+    )  # fmt: skip
+    p.add_argument(
+        "--search", choices=["on-misfit", "always"], default="on-misfit",
+        help="search the candidate effects only where the baseline fit leaves a "
+        "significant error (default), or on every job",
+    )  # fmt: skip
+    p.add_argument("--max-effects", type=int, default=2, help="effects added per job (default 2)")
+    p.add_argument("--starts", type=int, default=2, help="starts per fit (default 2)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the fits' random starts")
+    p.set_defaults(func=cmd_fleet)
 
     from jaxlift.cli.control import add_parsers as add_control_parsers
     from jaxlift.cli.posterior import add_parsers as add_posterior_parsers

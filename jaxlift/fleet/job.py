@@ -1,0 +1,185 @@
+"""One fleet job, as a worker process runs it: fit → diagnose → interval summary.
+
+The job is a program of its own (it runs in a worker process of the engine), so it
+switches JAX to float64 itself, like the command line does.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import pathlib
+import time
+from importlib.metadata import version
+
+import jax
+import numpy as np
+
+from ..calibrate.diagnose import (
+    NOT_AN_EFFECT,
+    final_verdict,
+    found_effects,
+    remaining_misfit,
+    usable_heldout,
+)
+from ..calibrate.fit import fit
+from ..model.constants import P_ATM
+from ..model.effects import load_effect_file
+from ..model.inputs import Inputs
+from ..model.log import read_log
+from ..model.simulate import simulate
+from ..posterior.air import air_content
+from ..workflows.diagnose import run_diagnose
+
+#: What a job does unless told otherwise (``jaxlift fleet --help``).
+DEFAULT_SETTINGS = {
+    # "diagnose": fit, then the iterative diagnosis; "fit": the baseline fit only
+    "job": "diagnose",
+    # "on-misfit": search the candidates only when the baseline fit leaves an error
+    # significantly above the sensor noise (remaining_misfit on fitted and held-out
+    # logs); "always": search them on every job
+    "search": "on-misfit",
+    "max_effects": 2,
+    "n_starts": 2,
+    "seed": 0,
+}
+
+#: The parameters the fleet tracks: bulk modulus (air) and friction.
+TRACKED = ("beta", "cf_con", "d")
+#: Probability of the intervals in the fleet table.
+INTERVAL = 0.9
+_Z = 1.6448536269514722  # standard normal quantile of 0.95: two-sided 90 %
+
+
+def write_json(path: pathlib.Path, obj) -> None:
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(obj, indent=1, default=_jsonable) + "\n", encoding="utf-8")
+    tmp.replace(path)  # atomic: a result file is complete or absent
+
+
+def _jsonable(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    return str(x)
+
+
+def laplace_interval(value: float, se: float) -> tuple[float, float]:
+    """90 % interval of a positive parameter from its estimate and (AR(1)-inflated)
+    standard error, normal on the log scale (``value * exp(±z se/value)``): the
+    Laplace approximation of the posterior around the least-squares optimum with flat
+    priors on log values. NaN where the standard error is not finite."""
+    if not (math.isfinite(se) and value > 0):
+        return math.nan, math.nan
+    f = math.exp(_Z * se / value)
+    return value / f, value * f
+
+
+def _mean_pressure(result, logs) -> float:
+    """Mean absolute pressure [Pa] over the moving samples of ``logs`` under the
+    fitted model (the pressure at which air content is stated)."""
+    tot, n = 0.0, 0
+    for lg in logs:
+        sol = simulate(result.model.plant, result.model.effects, Inputs.from_log(lg))
+        sol = sol.check(f"simulating {lg.name}")
+        moving = np.asarray(lg.pwm) > 0
+        p = np.asarray(sol.pressure)[moving]
+        tot, n = tot + float(np.sum(p)), n + p.size
+    return tot / max(n, 1) + P_ATM
+
+
+def summarise(result, logs) -> dict:
+    """The fleet table's numbers from the final model's fit: tracked parameters with
+    90 % intervals, air content implied by the bulk modulus, fit quality."""
+    row: dict = {"chi2n": result.chi2 / result.n_residuals, "rho1": result.rho1}
+    for name in TRACKED:
+        v = float(result.params[name])
+        se = float(result.stderr.get(name, math.nan))
+        lo, hi = laplace_interval(v, se)
+        row.update({name: v, f"{name}_se": se, f"{name}_lo": lo, f"{name}_hi": hi})
+    p_mean = _mean_pressure(result, logs)
+    row["p_mean_pa"] = p_mean
+    row["air"] = float(air_content(row["beta"], p_mean))
+    # monotone in beta: the interval's ends swap
+    row["air_lo"] = float(air_content(row["beta_hi"], p_mean))
+    row["air_hi"] = float(air_content(row["beta_lo"], p_mean))
+    alpha0 = result.params.get("alpha0")
+    row["alpha0"] = float(alpha0) if "entrained_air" in result.effects else math.nan
+    return row
+
+
+_LOADED_EFFECT_FILES: set[str] = set()
+
+
+def _load_user_effects(paths) -> None:
+    """Register the user's effect files (``--effect-file``) in this worker process,
+    once per process."""
+    for path in paths:
+        if path not in _LOADED_EFFECT_FILES:
+            load_effect_file(path)
+            _LOADED_EFFECT_FILES.add(path)
+
+
+def run_job(job, settings: dict, job_dir: str | pathlib.Path) -> dict:
+    """Run one job and write ``job_dir/result.json`` (last, atomically) and the
+    diagnosis report under ``job_dir/diagnosis/``. Returns the result record. Raises
+    on failure (the engine retries and then records the failure)."""
+    # this process's program start; modules imported above create no jax arrays
+    jax.config.update("jax_enable_x64", True)
+    s = {**DEFAULT_SETTINGS, **settings}
+    _load_user_effects(s.get("effect_files", []))
+    job_dir = pathlib.Path(job_dir)
+    job_dir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    try:
+        logs = [read_log(p) for p in job.fit]
+        val = [read_log(p) for p in job.validate]
+        record: dict = {"vehicle": job.vehicle, "date": job.date.isoformat()}
+        base = fit(logs, staged=True, n_starts=s["n_starts"], seed=s["seed"])
+        if not math.isfinite(base.chi2):
+            raise RuntimeError(
+                "the baseline fit failed: " + "; ".join(st.message for st in base.stages)
+            )
+        usable, _excluded = usable_heldout(logs, val)
+        misfit = remaining_misfit(base, usable)
+        record["baseline_chi2n"] = base.chi2 / base.n_residuals
+        record["baseline_misfit_significant"] = misfit.significant
+        final, effects, verdict, reasons = base, [], "none", []
+        if s["job"] == "fit":
+            verdict = "not searched"
+            reasons = ["job 'fit': the candidate effects were not searched"]
+        elif s["search"] == "always" or misfit.significant:
+            steps = run_diagnose(
+                logs, val, out_dir=job_dir / "diagnosis", max_effects=s["max_effects"],
+                n_starts=s["n_starts"], seed=s["seed"],
+            )  # fmt: skip
+            last = steps[-1]
+            final = last.base_fit if last.verdict in NOT_AN_EFFECT else last.winner_fit
+            effects = [e for e in found_effects(steps) if e in final.effects]
+            verdict = final_verdict(steps)
+            if verdict == "none" and effects:
+                verdict = "+".join(effects)
+            reasons = list(last.reasons)
+        else:
+            reasons = [
+                f"the baseline fit leaves no significant error (chi2/N "
+                f"{record['baseline_chi2n']:.3g}): no effect is missing that these logs "
+                "could show"
+            ]
+        record.update(
+            status="ok",
+            verdict=verdict,
+            effects=effects,
+            reasons=reasons,
+            **summarise(final, logs),
+        )
+    finally:
+        jax.clear_caches()  # a long-lived worker must not keep every shape's compilation
+    record.update(
+        wall_s=time.perf_counter() - t0,
+        jaxlift_version=version("jaxlift"),
+        settings=s,
+        logs_fit=[p.name for p in job.fit],
+        logs_validate=[p.name for p in job.validate],
+    )
+    write_json(job_dir / "result.json", record)
+    return record
