@@ -248,9 +248,15 @@ def static_pressure(params: Mapping[str, object], x: float, m_load: float) -> fl
     return mass * G * P["ratio"] / area
 
 
+#: docs/model.md: every run starts 1 µm above max(x0, 0) (off the end stop's tie)
+START_CLEARANCE_M = 1e-6
+
+
 def initial_state(params: Mapping[str, object], x0: float, m_load0: float) -> np.ndarray:
-    """At rest at height ``x0``, pressure at static equilibrium (docs/model.md)."""
-    return np.array([float(x0), 0.0, static_pressure(params, float(x0), float(m_load0))])
+    """At rest at height ``max(x0, 0) + 1 µm``, pressure at static equilibrium
+    (docs/model.md)."""
+    x = max(float(x0), 0.0) + START_CLEARANCE_M
+    return np.array([x, 0.0, static_pressure(params, x, float(m_load0))])
 
 
 def simulate_scipy(

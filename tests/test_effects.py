@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 import jaxlift as jl
+from jaxlift.model.constants import START_CLEARANCE
 
 RTOL = 1e-9
 ATOL = (1e-10, 1e-10, 1e-3)  # height m, speed m/s, pressure Pa
@@ -334,11 +335,12 @@ def test_mast_compliance_carriage_is_the_height_state(ring_plant, ring_baseline)
         "mast_compliance.delta_rate",
     )
     y = np.asarray(sol.ys)
-    assert y[0, 0] == RING_X0 and y[0, 1] == 0.0 and y[0, 4] == 0.0
+    x_start = RING_X0 + START_CLEARANCE  # docs/model.md: every start 1 µm up
+    assert y[0, 0] == x_start and y[0, 1] == 0.0 and y[0, 4] == 0.0
     np.testing.assert_allclose(y[0, 3], -RING_LOAD * G * ks_inv, rtol=1e-12)
     # at rest during the initial hold: carriage at x0, load hanging still
     hold = TS < 0.5
-    np.testing.assert_allclose(y[hold, 0], RING_X0, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(y[hold, 0], x_start, rtol=0, atol=1e-9)
     np.testing.assert_allclose(y[hold, 3], -RING_LOAD * G * ks_inv, rtol=1e-6)
     # the lower mode of the two-mass system, by hand
     f, x, _ = _ringdown_frequency(sol)

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 import jaxlift as jl
+from jaxlift.model.constants import START_CLEARANCE
 
 # ---------------------------------------------------------------- docs/model.md, by hand
 G = 9.81  # m/s^2
@@ -107,7 +108,8 @@ def test_static_equilibrium_holds(x0, m_load):
     sol = run(jl.Plant(), 0.0, m_load, x0)
     assert bool(sol.ok)
     p_hand = static_pressure(x0, m_load)
-    np.testing.assert_allclose(np.asarray(sol.height), x0, rtol=0, atol=1e-6)
+    # every start is START_CLEARANCE (1 µm) above x0 (docs/model.md, initial state)
+    np.testing.assert_allclose(np.asarray(sol.height), x0 + START_CLEARANCE, rtol=0, atol=1e-9)
     np.testing.assert_allclose(np.asarray(sol.speed), 0.0, rtol=0, atol=1e-6)
     np.testing.assert_allclose(float(sol.pressure[0]), p_hand, rtol=1e-12)
     np.testing.assert_allclose(np.asarray(sol.pressure), p_hand, rtol=1e-9)

@@ -23,13 +23,12 @@ import logging
 import pathlib
 import traceback
 from collections.abc import Callable, Sequence
-from importlib.metadata import version
 
 from dask.distributed import Client, LocalCluster, as_completed
 from tqdm.auto import tqdm
 
 from .job import DEFAULT_SETTINGS, run_job, write_json
-from .manifest import FleetJob
+from .manifest import FleetJob, code_version
 
 
 @dataclasses.dataclass
@@ -69,7 +68,7 @@ def run_jobs(
     say = progress or (lambda _s: None)
     out = pathlib.Path(out_dir)
     settings = {**DEFAULT_SETTINGS, **(settings or {})}
-    ver = version("jaxlift")
+    ver = code_version()
     todo, results = [], []
     for job in jobs:
         key = job.key(settings, ver)

@@ -10,7 +10,6 @@ import json
 import math
 import pathlib
 import time
-from importlib.metadata import version
 
 import jax
 import numpy as np
@@ -30,6 +29,7 @@ from ..model.log import read_log
 from ..model.simulate import simulate
 from ..posterior.air import air_content
 from ..workflows.diagnose import run_diagnose
+from .manifest import code_version
 
 #: What a job does unless told otherwise (``jaxlift fleet --help``).
 DEFAULT_SETTINGS = {
@@ -176,7 +176,7 @@ def run_job(job, settings: dict, job_dir: str | pathlib.Path) -> dict:
         jax.clear_caches()  # a long-lived worker must not keep every shape's compilation
     record.update(
         wall_s=time.perf_counter() - t0,
-        jaxlift_version=version("jaxlift"),
+        jaxlift_version=code_version(),
         settings=s,
         logs_fit=[p.name for p in job.fit],
         logs_validate=[p.name for p in job.validate],

@@ -3,7 +3,7 @@
 A run folder holds the logs of one vehicle's test runs on one day, and optionally a
 manifest ``run.toml`` that says which logs are fitted and which are held out::
 
-    fit = ["lift_500kg.csv", "lift_1200kg.csv"]   # fitted (default: every *.csv)
+    fit = ["lift_500kg.csv", "lift_1200kg.csv"]   # fitted (default: every log file)
     validate = ["lift_800kg.csv"]                 # held out (default: none)
 
 ``<date>`` is an ISO date (``2026-11-23``); the vehicle folder's name is the vehicle's
@@ -20,8 +20,11 @@ import hashlib
 import json
 import pathlib
 import tomllib
+from importlib.metadata import version
 
 MANIFEST = "run.toml"
+#: The files a run folder's logs are (CSV or Parquet, docs/data.md).
+LOG_SUFFIXES = (".csv", ".parquet", ".pq")
 _KEYS = {"fit", "validate"}
 
 
@@ -45,8 +48,9 @@ class FleetJob:
 
     def key(self, settings: dict, version: str) -> str:
         """Hash of what decides the job's result: the bytes of every log (and of its
-        role), the job settings and the jaxlift version. A re-run skips a job whose
-        key has a finished result; a changed log, setting or version runs it again."""
+        role), the job settings and ``version`` (:func:`code_version`: jaxlift's version
+        and a hash of its source). A re-run skips a job whose key has a finished
+        result; a changed log, setting or code runs it again."""
         h = hashlib.sha256()
         h.update(json.dumps({"settings": settings, "version": version}, sort_keys=True).encode())
         for role, paths in (("fit", self.fit), ("validate", self.validate)):
@@ -56,16 +60,27 @@ class FleetJob:
         return h.hexdigest()[:20]
 
 
+def code_version() -> str:
+    """jaxlift's version and the SHA-256 (first 12 hex digits) of its source files, so
+    that a development install's changes count as a new version."""
+    h = hashlib.sha256()
+    pkg = pathlib.Path(__file__).resolve().parents[1]
+    for p in sorted(pkg.rglob("*.py")):
+        h.update(p.relative_to(pkg).as_posix().encode())
+        h.update(p.read_bytes())
+    return f"{version('jaxlift')}+src.{h.hexdigest()[:12]}"
+
+
 def _visible(p: pathlib.Path) -> bool:
     return not p.name.startswith((".", "_"))
 
 
 def _read_manifest(folder: pathlib.Path) -> tuple[tuple, tuple]:
-    csvs = sorted(p for p in folder.glob("*.csv") if _visible(p))
+    csvs = sorted(p for p in folder.iterdir() if p.suffix.lower() in LOG_SUFFIXES and _visible(p))
     path = folder / MANIFEST
     if not path.exists():
         if not csvs:
-            raise FleetError(f"{folder}: no logs (*.csv) in this run folder")
+            raise FleetError(f"{folder}: no logs (*.csv, *.parquet) in this run folder")
         return tuple(csvs), ()
     try:
         spec = tomllib.loads(path.read_text(encoding="utf-8"))

@@ -53,6 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .log_parquet import PARQUET_SUFFIXES, read_parquet_columns
 from .log_validation import (
     KNOWN_COLUMNS,
     MIN_SAMPLES,
@@ -162,7 +163,9 @@ def _parse_extra(tokens: Sequence[str]) -> np.ndarray:
 
 
 def read_log(path: str | os.PathLike[str]) -> Log:
-    """Read and check one log file (format: see the module docstring).
+    """Read and check one log file (format: see the module docstring). A file ending in
+    ``.parquet`` or ``.pq`` is read as Parquet: the same columns and checks, typed
+    columns (:mod:`jaxlift.model.log_parquet`).
 
     Returns a :class:`Log` named after the file's stem.  Raises :class:`LogError` for anything
     that is not a valid log, and warns once (:class:`UnusedColumnsWarning`) about columns that
@@ -170,6 +173,10 @@ def read_log(path: str | os.PathLike[str]) -> Log:
     """
     p = os.fsdecode(path)
     name = Path(p).stem
+    if Path(p).suffix.lower() in PARQUET_SUFFIXES:
+        arrays, extra = read_parquet_columns(p, name)
+        _warn_unused(p, extra)
+        return Log(**arrays, extra=extra, name=name, path=p)
 
     try:
         with open(p, "rb") as f:
@@ -270,13 +277,17 @@ def read_log(path: str | os.PathLike[str]) -> Log:
     known = {c: _parse_numbers(tokens) for c, tokens in raw.items()}
     arrays = validate_arrays(known, path=p, name=name, lines=lines, raw=raw)
     extra = {c: _parse_extra(fields[j]) for c, j in first_field.items() if c not in KNOWN_COLUMNS}
+    _warn_unused(p, extra)
+    return Log(**arrays, extra=extra, name=name, path=p)
+
+
+def _warn_unused(p: str, extra: dict) -> None:
     if extra:
         warnings.warn(
             f"{p}: column(s) {', '.join(repr(c) for c in extra)} not used (kept in Log.extra)",
             UnusedColumnsWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
-    return Log(**arrays, extra=extra, name=name, path=p)
 
 
 def write_log(path: str | os.PathLike[str], log: Log, *, float_format: str = "%.9g") -> None:

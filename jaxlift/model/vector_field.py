@@ -10,6 +10,7 @@ from collections.abc import Sequence
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from .constants import START_CLEARANCE
 from .effects import EFFECTS, AbstractEffect, Signals, rigid_acceleration
 from .inputs import Inputs
 from .plant import Plant
@@ -112,6 +113,9 @@ def initial_state(
     # where, not maximum: at the tie x0 = 0 (a log starting on the stop) the derivative
     # is that of raising the start (1), not 1/2 (see Plant.end_stop_force)
     x0 = jnp.where(inputs.x0 >= 0.0, inputs.x0, 0.0)
+    # off the contact's tie (constants.START_CLEARANCE): every start 1 µm higher, so
+    # that the start stays continuous with derivative 1 (a shift far below the noise)
+    x0 = x0 + START_CLEARANCE
     u0, m0 = inputs.at(inputs.ts[0])
     p0 = plant.static_pressure(x0, m0)
     y_base = jnp.stack([x0, jnp.zeros(()), p0])
