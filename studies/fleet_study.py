@@ -12,7 +12,8 @@ the truth: every drifting vehicle flagged with the right reason, no stable vehic
 flagged, the new effect named on the week it appears; it writes
 ``studies/results/fleet_study.md``. ``scaling`` measures jobs per hour with 1 and 2
 local workers on the same jobs, and the engine's own overhead per job (trivial jobs
-through the same engine), and appends them to the results.
+through the same engine), into ``studies/results/fleet_scaling.md`` (which
+``evaluate`` includes).
 """
 
 from __future__ import annotations
@@ -100,14 +101,36 @@ def cmd_evaluate(a) -> int:
             f"- Time per job (inside the worker): median {times[len(times) // 2]:.0f} s, "
             f"max {times[-1]:.0f} s."
         )
+    stable = [v["vehicle"] for v in truth["vehicles"] if v["kind"] == "stable"]
+    zs = [abs(t["z"]) for v in stable for t in flags["tests"][v].values() if t["z"] == t["z"]]
+    infl = {
+        name: sorted({round(t["inflation"], 2) for v in flags["tests"].values()
+                      for n, t in v.items() if n == name and t["inflation"] == t["inflation"]})
+        for name in ("beta", "cf_con", "d")
+    }  # fmt: skip
+    if zs:
+        lines.append(
+            f"- Stable vehicles: largest |z| of any trend test {max(zs):.1f} (the Bonferroni "
+            f"threshold at alpha 0.05 over {3 * len(truth['vehicles'])} tests is |z| "
+            f"{_z_threshold(3 * len(truth['vehicles'])):.2f}); inflation of the stated "
+            f"errors, pooled over the fleet: {infl}."
+        )
     verdicts = {}
     for r in table:
         verdicts[r["verdict"]] = verdicts.get(r["verdict"], 0) + 1
     lines.append(f"- Verdicts over all jobs: {verdicts}.")
     RESULTS.mkdir(parents=True, exist_ok=True)
+    if (RESULTS / "fleet_scaling.md").exists():
+        lines += ["", (RESULTS / "fleet_scaling.md").read_text()]
     (RESULTS / "fleet_study.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0
+
+
+def _z_threshold(m: int, alpha: float = 0.05) -> float:
+    from scipy import stats
+
+    return float(stats.norm.isf(alpha / m / 2))
 
 
 def _trivial(job, settings, job_dir):
@@ -140,14 +163,14 @@ def cmd_scaling(a) -> int:
                  job_fn=_trivial)  # fmt: skip
         over.append((workers, len(trivial), time.perf_counter() - t0))
         print(over[-1], flush=True)
-    lines = ["", "## Scaling (this machine: 2 cores)", "",
+    lines = ["## Scaling (this machine: 2 cores)", "",
              "| workers | jobs | wall [s] | jobs per hour |", "|---:|---:|---:|---:|"]  # fmt: skip
     lines += [f"| {w} | {n} | {t:.0f} | {r:.0f} |" for w, n, t, r in rows]
     lines += ["", "Engine overhead (trivial jobs through the same engine, cluster start "
               "included):", ""]  # fmt: skip
     lines += [f"- {w} worker(s): {n} jobs in {t:.1f} s ({1000 * t / n:.0f} ms per job)"
               for w, n, t in over]  # fmt: skip
-    with open(RESULTS / "fleet_study.md", "a") as f:
+    with open(RESULTS / "fleet_scaling.md", "w") as f:
         f.write("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0

@@ -269,3 +269,18 @@ def test_fleet_command_killed_and_resumed_flags_the_drifting_vehicle(tmp_path):
     assert list(flags["flagged"]) == ["airy"]
     assert flags["flagged"]["airy"][0].startswith("air content rising")
     assert (out / "report.html").exists() and (out / "figures" / "vehicle_airy.png").exists()
+
+
+def test_engine_runs_on_a_cluster_given_its_scheduler_address(tmp_path):
+    """``scheduler=``: the same jobs on a cluster that was started elsewhere (here a
+    separate local cluster, reached only through its address)."""
+    import fleet_jobs
+    from dask.distributed import LocalCluster
+
+    root = _tree(tmp_path, {"a": {"2026-01-01": ["x.csv"]}, "b": {"2026-01-01": ["x.csv"]}})
+    with LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address=":0") as cluster:
+        run = run_jobs(discover_jobs(root), tmp_path / "out", scheduler=cluster.scheduler_address,
+                       job_fn=fleet_jobs.ok_job)  # fmt: skip
+        assert run.ran == 2 and len(run.results) == 2 and not run.failures
+        # the cluster is not ours: it is still up after the run
+        assert cluster.status.name == "running"
