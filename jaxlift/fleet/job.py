@@ -22,12 +22,10 @@ from ..calibrate.diagnose import (
     usable_heldout,
 )
 from ..calibrate.fit import fit
-from ..model.constants import P_ATM
 from ..model.effects import load_effect_file
 from ..model.inputs import Inputs
 from ..model.log import read_log
-from ..model.simulate import simulate
-from ..posterior.air import air_content
+from ..posterior.air import air_content, mean_pressure
 from ..workflows.diagnose import run_diagnose
 from .manifest import code_version
 
@@ -74,19 +72,6 @@ def laplace_interval(value: float, se: float) -> tuple[float, float]:
     return value / f, value * f
 
 
-def _mean_pressure(result, logs) -> float:
-    """Mean absolute pressure [Pa] over the moving samples of ``logs`` under the
-    fitted model (the pressure at which air content is stated)."""
-    tot, n = 0.0, 0
-    for lg in logs:
-        sol = simulate(result.model.plant, result.model.effects, Inputs.from_log(lg))
-        sol = sol.check(f"simulating {lg.name}")
-        moving = np.asarray(lg.pwm) > 0
-        p = np.asarray(sol.pressure)[moving]
-        tot, n = tot + float(np.sum(p)), n + p.size
-    return tot / max(n, 1) + P_ATM
-
-
 def summarise(result, logs) -> dict:
     """The fleet table's numbers from the final model's fit: tracked parameters with
     90 % intervals, air content implied by the bulk modulus, fit quality."""
@@ -96,7 +81,10 @@ def summarise(result, logs) -> dict:
         se = float(result.stderr.get(name, math.nan))
         lo, hi = laplace_interval(v, se)
         row.update({name: v, f"{name}_se": se, f"{name}_lo": lo, f"{name}_hi": hi})
-    p_mean = _mean_pressure(result, logs)
+    p_mean = mean_pressure(
+        result.model.plant, result.model.effects, [Inputs.from_log(lg) for lg in logs],
+        [lg.name for lg in logs],
+    )  # fmt: skip
     row["p_mean_pa"] = p_mean
     row["air"] = float(air_content(row["beta"], p_mean))
     # monotone in beta: the interval's ends swap

@@ -8,7 +8,6 @@ column and the row: a row is reported as the line it would be on in the CSV file
 index + 2, the header being line 1), with its 0-based index.
 """
 
-
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq

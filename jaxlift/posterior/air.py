@@ -5,6 +5,8 @@ statement.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
@@ -37,11 +39,19 @@ def air_content(
 def mean_working_pressure(problem: PosteriorProblem) -> float:
     """Mean absolute pressure [Pa] over the moving parts of the logs (samples with
     ``pwm > 0``), simulated with the calibrated model: gauge line pressure + 1 atm."""
-    plant, effs = problem.model.plant, problem.model.effects
+    return mean_pressure(
+        problem.model.plant, problem.model.effects, [e.inputs for e in problem.experiments],
+        [e.name for e in problem.experiments],
+    )  # fmt: skip
+
+
+def mean_pressure(plant, effects, inputs: Sequence, names: Sequence[str]) -> float:
+    """Mean absolute pressure [Pa] over the samples with ``pwm > 0`` of runs with these
+    ``inputs`` (named ``names`` in errors), simulated with ``plant`` and ``effects``."""
     tot, n = 0.0, 0
-    for exp in problem.experiments:
-        sol = simulate(plant, effs, exp.inputs).check(f"simulating {exp.name}")
-        moving = np.asarray(exp.inputs.pwm) > 0
+    for inp, name in zip(inputs, names, strict=True):
+        sol = simulate(plant, effects, inp).check(f"simulating {name}")
+        moving = np.asarray(inp.pwm) > 0
         p = np.asarray(sol.pressure)[moving]
         tot += float(np.sum(p))
         n += int(p.size)
