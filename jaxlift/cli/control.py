@@ -39,9 +39,9 @@ def cmd_tune(args) -> int:
         params_path=params_path,
         posterior_dir=args.posterior,
         scheduled=args.scheduled,
-        sampled=args.sampled,
+        sampled=not args.continuous,
         T_c=args.Tc,
-        noise_seed=args.noise_seed,
+        noise_seeds=None if args.noise_seeds == 0 else range(args.noise_seeds),
         steps=args.steps,
         rtol=args.rtol,
         robust_draws=args.robust_draws,
@@ -81,10 +81,24 @@ def cmd_control_simulate(args) -> int:
     return 0
 
 
-def _common(p: argparse.ArgumentParser) -> None:
+def _common(p: argparse.ArgumentParser, *, tune: bool = False) -> None:
     p.add_argument("--params", help="parameter file (JSON, from jaxlift fit)")
     p.add_argument("--effects", default=None, help="effects (a,b); default: those in --params")
-    p.add_argument("--sampled", action="store_true", help="controller on a clock (ZOH on u)")
+    if tune:  # tuning is of the loop as deployed unless told otherwise
+        p.add_argument(
+            "--continuous",
+            action="store_true",
+            help="tune the continuous-time controller (default: sampled every --Tc, duty held)",
+        )
+        p.add_argument(
+            "--noise-seeds",
+            type=int,
+            default=4,
+            help="tune with the speed sensor's noise, cost averaged over this many seeds "
+            "(0: no noise; default 4)",
+        )
+    else:
+        p.add_argument("--sampled", action="store_true", help="controller on a clock (ZOH on u)")
     p.add_argument("--Tc", type=float, default=0.01, help="controller period [s] (10 ms)")
     p.add_argument(
         "--time-scale",
@@ -99,18 +113,19 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "tune",
         help="tune the PID gains by gradient through the closed-loop simulation",
-        description="Tune the lift controller's gains (docs/control.md) on the calibrated model: "
-        "nominal, and robust over parameter draws (posterior, or the least-squares "
-        "covariance of the fit); writes gains.json, figures and a report.",
+        description="Tune the lift controller's gains (docs/control.md) on the calibrated model, "
+        "as deployed (sampled every --Tc with the duty held, the speed sensor's noise "
+        "averaged over --noise-seeds seeds): nominal, and robust over parameter draws "
+        "(posterior, the least-squares covariance of the fit, or stated spreads); writes "
+        "gains.json, figures and a report.",
     )
     p.add_argument("logs", nargs="+", help="logs (CSV): their loads are the tuning loads")
-    _common(p)
+    _common(p, tune=True)
     p.add_argument("--posterior", help="posterior directory (jaxlift posterior)")
     p.add_argument("--scheduled", action="store_true", help="tune the scheduled PID (18 + N)")
     p.add_argument("--steps", type=int, default=30, help="evaluations per tuning (LM; at most)")
     p.add_argument("--robust-draws", type=int, default=16, help="draws for robust tuning")
     p.add_argument("--eval-draws", type=int, default=100, help="held-out draws for the report")
-    p.add_argument("--noise-seed", type=int, default=None, help="tune with sensor noise")
     p.add_argument(
         "--report-noise-seed", type=int, default=0, help="noise seed of the report's noisy case"
     )

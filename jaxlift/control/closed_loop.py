@@ -58,7 +58,7 @@ from ..model.solution import RANGE_TOLERANCE_M, AbstractSolution
 from ..model.stepping import JumpStepSizeController, StabilityLimitedController
 from ..model.vector_field import canonical_effects, initial_state, plant_signals_and_derivative
 from .controller import DEFAULT_TC, AbstractController
-from .reference import Reference
+from .reference import Reference, is_moving
 
 #: Sensor-noise power [(m/s)^2 s] and hold time [s] (docs/control.md, thesis 2.4.4).
 NOISE_POWER = SPEED_NOISE_POWER
@@ -174,7 +174,7 @@ def _cl_vector_field(t, y, args):
     yp = y[:n_plant]
     q_I, eta = y[n_plant], y[n_plant + 1]
     v_ref = ref.v(t)
-    moving = v_ref != 0.0
+    moving = is_moving(v_ref)
     e = v_ref - (yp[1] + _noise_at(noise, t))
     out = ctrl.output(plant, yp[0], ref.m_load, e, q_I, eta, moving)
     _, dyp = plant_signals_and_derivative(t, yp, plant, effects, out.u, ref.m_load)
@@ -226,7 +226,7 @@ def _solve_continuous(plant, effects, ctrl, ref, seed, noise_on, rtol, atol_base
 
     def law(y, vr, vm):
         return ctrl.output(
-            plant, y[0], ref.m_load, vr - vm, y[n_plant], y[n_plant + 1], vr != 0.0
+            plant, y[0], ref.m_load, vr - vm, y[n_plant], y[n_plant + 1], is_moving(vr)
         ).u
 
     u = jax.vmap(law)(ys, v_ref, v_meas)
@@ -278,7 +278,7 @@ def _solve_sampled(
         y, q_I, eta, buf = carry
         t = k * T_c
         v_ref = ref.v(t)
-        moving = v_ref != 0.0
+        moving = is_moving(v_ref)
         v_meas = y[1] + _noise_at(noise, t, at_sample=True)
         u, u_raw, q1, eta1 = ctrl.sampled_update(
             plant, y[0], m, v_ref - v_meas, q_I, eta, moving, T_c

@@ -10,7 +10,8 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
 
 from ..model.constants import OUTPUT_DT
 from ..model.effects import AbstractEffect
@@ -26,7 +27,7 @@ from .performance import (
     noise_amplification,
     ref_masks,
 )
-from .reference import Reference
+from .reference import Reference, is_moving
 
 #: Cost of a run whose simulation failed (finite: no NaN in a batch; gradient 0).
 FAILED_COST = 1e6
@@ -79,7 +80,7 @@ def tuning_residuals(ctrl, plant, sol: ClosedLoopSolution, weights=None) -> Floa
     err = sol.v_ref - sol.speed
     steady, _ = ref_masks(sol)
     steady = steady.astype(err.dtype)
-    moving = (sol.v_ref != 0.0).astype(err.dtype)[1:-1]
+    moving = is_moving(sol.v_ref).astype(err.dtype)[1:-1]
     osc = bandpass(err)
     rate = jnp.diff(jnp.diff(sol.u_int) / OUTPUT_DT) / OUTPUT_DT
     n = err.shape[0]
@@ -133,27 +134,85 @@ def closed_loop_costs(
     batched_plants: bool = False,
     weights: CostWeights | None = None,
     batch: str = "map",
+    noise_seeds: ArrayLike | None = None,
     **sim_kw,
 ) -> tuple[Float[Array, "B L"], Float[Array, "B L"], Figures]:
-    """Costs of ``controller`` on plants x references (loads): arrays ``(B, L)`` of
-    costs (``FAILED_COST`` for failed runs), success flags, and the figures.
+    """Costs of ``controller`` on plants x runs: arrays ``(B, L)`` of costs
+    (``FAILED_COST`` for failed runs), success flags, and the figures.
 
-    ``references``: a stacked :class:`Reference` (leading axis ``L``, e.g. loads);
-    ``plants``/``effects``: one model, or stacked draws (leading axis ``B``) with
-    ``batched_plants=True``. ``batch``: ``"map"`` (``lax.map``, one draw after the
-    other) or ``"vmap"`` (a batched adaptive solve runs every member until the slowest
-    finishes). Measured for 32 draws of the 110 s run on 2 CPU cores (benchmark):
-    ``lax.map`` 0.40-0.56 s against ``vmap`` 1.45-2.4 s on a moderately loaded machine,
-    about equal (1.6 s) under heavy load. ``sim_kw`` go to :func:`simulate_closed_loop`."""
-    run_ref = eqx.filter_vmap(
-        lambda p, e, r: _run(controller, p, e, r, sim_kw, weights), in_axes=(None, None, 0)
-    )
-    if batched_plants:
-        if batch == "vmap":
-            return eqx.filter_vmap(lambda p, e: run_ref(p, e, references))(plants, effects)
-        return jax.lax.map(lambda pe: run_ref(pe[0], pe[1], references), (plants, effects))
-    c, ok, fig = run_ref(plants, effects, references)
-    return c[None], ok[None], jax.tree.map(lambda a: a[None], fig)
+    ``references``: a stacked :class:`Reference` (leading axis ``L``, the runs: e.g.
+    loads, or loads x noise seeds, :func:`tuning_runs`); ``plants``/``effects``: one
+    model, or stacked draws (leading axis ``B``) with ``batched_plants=True``.
+    ``noise_seeds``: the sensor-noise seed of each run, shape ``(L,)``, or ``(B, L)``
+    with a realisation of its own for every draw (None: ``sim_kw``'s ``noise_seed``,
+    the same for every run, or no noise). ``batch``: ``"map"`` (``lax.map``, one draw
+    after the other) or ``"vmap"`` (a batched adaptive solve runs every member until
+    the slowest finishes). Measured for 32 draws of the 110 s run on 2 CPU cores
+    (benchmark): ``lax.map`` 0.40-0.56 s against ``vmap`` 1.45-2.4 s on a moderately
+    loaded machine, about equal (1.6 s) under heavy load. ``sim_kw`` go to
+    :func:`simulate_closed_loop`."""
+    one = lambda p, e, r, kw: _run(controller, p, e, r, kw, weights)
+    return over_runs(one, plants, effects, references, noise_seeds, sim_kw, batched_plants, batch)
+
+
+def over_runs(one, plants, effects, references, noise_seeds, sim_kw, batched_plants, batch="map"):
+    """``one(plant, effects, reference, sim_kw)`` over the draws (leading axis of
+    ``plants``/``effects`` when ``batched_plants``) and the runs (leading axis of
+    ``references``, with ``noise_seeds`` per run or per draw and run), each output with
+    leading axes ``(B, L)`` (``B = 1`` for one model). The one place where draws, runs
+    and noise seeds are laid out, for costs, residuals and Jacobians alike."""
+
+    def runs(p, e, seeds):
+        if seeds is None:
+            return eqx.filter_vmap(lambda r: one(p, e, r, sim_kw))(references)
+        return eqx.filter_vmap(lambda r, s: one(p, e, r, dict(sim_kw, noise_seed=s)))(
+            references, seeds
+        )
+
+    seeds = None if noise_seeds is None else jnp.asarray(noise_seeds, dtype=jnp.uint32)
+    if not batched_plants:
+        if seeds is not None and seeds.ndim == 2:
+            seeds = seeds[0]
+        return jax.tree.map(lambda a: a[None], runs(plants, effects, seeds))
+    n_draws = jax.tree.leaves(plants)[0].shape[0]
+    if seeds is not None and seeds.ndim == 1:
+        seeds = jnp.broadcast_to(seeds, (n_draws, seeds.shape[0]))
+    if batch == "vmap":
+        return eqx.filter_vmap(runs)(plants, effects, seeds)
+    return jax.lax.map(lambda pes: runs(*pes), (plants, effects, seeds))
+
+
+#: Seeds of the draws' own noise realisations are ``seed + DRAW_SEED_STRIDE * b``
+#: (:func:`tuning_runs`), far apart from the small seeds a user passes.
+DRAW_SEED_STRIDE = 100_003
+
+
+def tuning_runs(
+    references: Sequence[Reference],
+    noise_seeds: Sequence[int] | None,
+    n_draws: int | None = None,
+) -> tuple[Reference, Array | None]:
+    """The runs of one cost evaluation: every reference (load) with every noise seed
+    (``L x S`` runs, seed-major), stacked, and their seeds -- ``(L S,)``, or ``(B, L S)``
+    with ``n_draws = B``: then draw ``b`` has noise of its own (seeds shifted by
+    ``b`` :data:`DRAW_SEED_STRIDE`), so that the draws also average over the noise.
+    ``noise_seeds`` None: the references alone, no seeds (no noise).
+
+    Why several seeds: with noise the cost of one realisation is itself random, and
+    its gradient is the gradient of that realisation; the mean over ``S`` seeds is an
+    estimate of the expected cost whose error falls like ``1/sqrt(S)``, and the tuned
+    gains stop fitting one noise sequence."""
+    refs = list(references)
+    if noise_seeds is None:
+        return stack_references(refs), None
+    seeds = [int(s) for s in noise_seeds]
+    if not seeds:
+        raise ValueError("noise_seeds: give at least one seed, or None for no noise")
+    stacked = stack_references([r for _ in seeds for r in refs])
+    per_run = np.repeat(np.asarray(seeds, dtype=np.int64), len(refs))
+    if n_draws is not None:
+        per_run = per_run[None, :] + DRAW_SEED_STRIDE * np.arange(n_draws)[:, None]
+    return stacked, jnp.asarray(per_run % 2**32, dtype=jnp.uint32)
 
 
 def robust_objective(

@@ -35,6 +35,7 @@ from jaxtyping import Array, Float
 
 from ..model.constants import OUTPUT_DT
 from .closed_loop import NOISE_POWER, NOISE_TS, ClosedLoopSolution
+from .reference import is_moving
 
 BAND_HZ = (0.5, 10.0)
 SETTLE_S = 2.0
@@ -111,7 +112,7 @@ def ref_masks(sol: ClosedLoopSolution):
     flat = kv[i] == kv[i + 1]
     # time since the reference last changed slope (the start of its flat piece)
     t_flat = kt[i]
-    steady = flat & (sol.v_ref != 0.0) & (ts - t_flat >= SETTLE_S)
+    steady = flat & is_moving(sol.v_ref) & (ts - t_flat >= SETTLE_S)
     x_ref = ref.x0 + jnp.concatenate(
         [jnp.zeros(1), jnp.cumsum(0.5 * (sol.v_ref[1:] + sol.v_ref[:-1])) * OUTPUT_DT]
     )
@@ -137,7 +138,7 @@ def figures(sol: ClosedLoopSolution) -> Figures:
     """The figures of "good" of a closed-loop run (jit/vmap/grad-safe)."""
     err = sol.v_ref - sol.speed
     steady, x_ref = ref_masks(sol)
-    moving = (sol.v_ref != 0.0).astype(err.dtype)
+    moving = is_moving(sol.v_ref).astype(err.dtype)
     steady = steady.astype(err.dtype)
     osc = bandpass(err)
     x1, x2 = sol.x_s

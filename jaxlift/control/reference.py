@@ -13,6 +13,21 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..model.constants import OUTPUT_DT
 
+#: Reference speeds below this [m/s] are "stopped" (docs/control.md: the controller
+#: closes the valve and holds its states where ``v_ref = 0``). Not an exact zero: at
+#: the first sample of a ramp from a hold, ``v_ref(t_k)`` is evaluated at ``t_k = k T_c``,
+#: and XLA's fused multiply-add makes ``k T_c - t_knot`` 1e-17 s instead of 0, so an
+#: exact test called the loop "moving" one sample early (measured: the states
+#: integrated that sample's noise; found by the independent closed loop,
+#: tests/scipy_closed_loop.py). A nanometre per second is far below any real reference.
+STOPPED_BELOW_MPS = 1e-9
+
+
+def is_moving(v_ref: Float[ArrayLike, "..."]) -> Array:
+    """Whether the reference moves: ``|v_ref| >`` :data:`STOPPED_BELOW_MPS` [m/s]."""
+    return jnp.abs(jnp.asarray(v_ref)) > STOPPED_BELOW_MPS
+
+
 #: The thesis-like reference (docs/control.md, thesis figure 2.9): ``(v_ref [m/s],
 #: duration [s])`` sections, ramped over 1 s, from 0.2 m: fast (0.09 m/s) and slow
 #: (0.025 m/s) sections in every stage, holds, both stage shifts crossed (the first

@@ -339,6 +339,36 @@ def _scaled_gains(controller: AbstractController, fp, fi, fd, n_cap) -> Abstract
     return controller.with_gains(out)
 
 
+def clock_candidates(
+    controller: AbstractController,
+    plant: Plant,
+    effects: Sequence[AbstractEffect],
+    loads: Sequence[float],
+    T_c: float = 0.01,
+) -> list[tuple[float, AbstractController]]:
+    """``controller`` and the coarse grid of scaled versions of it
+    (:data:`STABILISING_FACTORS`: the proportional, integral and derivative gains
+    scaled down, the derivative filter capped at ``0.3 / T_c`` or not), each with its
+    largest ``|lambda|`` on the clock (:func:`sampled_spectral_radius`); ``controller``
+    first."""
+    out = [(sampled_spectral_radius(controller, plant, effects, loads, T_c), controller)]
+    n_cap = 0.3 / T_c
+    for fp in STABILISING_FACTORS["P"]:
+        for fi in STABILISING_FACTORS["I_over_P"]:
+            for fd in STABILISING_FACTORS["D"]:
+                for cap in (None, n_cap):
+                    if (fp, fi, fd, cap) == (1.0, 1.0, 1.0, None):
+                        continue  # the controller itself
+                    cand = _scaled_gains(controller, fp, fi, fd, cap)
+                    out.append((sampled_spectral_radius(cand, plant, effects, loads, T_c), cand))
+    return out
+
+
+def gains_text(controller: AbstractController) -> str:
+    """``"P 20, I 300, ..."``: a controller's gains in a sentence (3 digits)."""
+    return ", ".join(f"{k} {v:.3g}" for k, v in controller.gain_values().items())
+
+
 def stabilise_for_clock(
     controller: AbstractController,
     plant: Plant,
@@ -348,10 +378,10 @@ def stabilise_for_clock(
 ) -> tuple[AbstractController, str | None]:
     """A starting point for tuning the sampled loop: ``controller`` itself if it is
     stable on the clock (:func:`sampled_spectral_radius` < 1), else the most stable of
-    a coarse grid of scaled versions of it (:data:`STABILISING_FACTORS`: the
-    proportional, integral and derivative gains scaled down, the derivative filter
-    capped at ``0.3 / T_c``). Returns the controller and a note saying what was done
-    (None when nothing was).
+    a coarse grid of scaled versions of it (:func:`clock_candidates`). Returns the
+    controller and a note saying what was done (None when nothing was).
+    (:func:`jaxlift.control.tune.tune_gains` chooses among the stable candidates by
+    the tuning cost itself; this is the choice by stability alone.)
 
     Why: derivatives through an unstable loop grow with every period (a multiplier
     of 1.12 per 10 ms is 1e78 over 16 s) and the saturation that bounds the run does
@@ -359,31 +389,23 @@ def stabilise_for_clock(
     slow speed, and tuning from them stalled at its first step (measured: Jacobian
     columns of 1e18-1e33 where finite differences gave 5e3-8e3). From a stable start
     the forward-mode Jacobian agrees with finite differences."""
-    r0 = sampled_spectral_radius(controller, plant, effects, loads, T_c)
+    cands = clock_candidates(controller, plant, effects, loads, T_c)
+    r0 = cands[0][0]
     if r0 < 1.0:
         return controller, None
-    n_cap = 0.3 / T_c
-    best = (r0, controller)
-    for fp in STABILISING_FACTORS["P"]:
-        for fi in STABILISING_FACTORS["I_over_P"]:
-            for fd in STABILISING_FACTORS["D"]:
-                for cap in (None, n_cap):
-                    cand = _scaled_gains(controller, fp, fi, fd, cap)
-                    r = sampled_spectral_radius(cand, plant, effects, loads, T_c)
-                    if r < best[0]:
-                        best = (r, cand)
-    r, chosen = best
-    gains = ", ".join(f"{k} {v:.3g}" for k, v in chosen.gain_values().items())
+    r, chosen = min(cands, key=lambda rc: rc[0])
+    return chosen, unstable_start_note(r0, r, chosen, T_c)
+
+
+def unstable_start_note(r0: float, r: float, chosen: AbstractController, T_c: float) -> str:
+    """What :func:`stabilise_for_clock` did, as a sentence."""
+    head = f"the starting gains are unstable sampled every {T_c:g} s (largest |lambda| {r0:.3g})"
     if r < 1.0:
-        note = (
-            f"the starting gains are unstable sampled every {T_c:g} s (largest |lambda| "
-            f"{r0:.3g}); tuning starts from the most stable of a coarse grid of scaled "
-            f"versions: {gains} (|lambda| {r:.3g})"
+        return (
+            f"{head}; tuning starts from the most stable of a coarse grid of scaled "
+            f"versions: {gains_text(chosen)} (|lambda| {r:.3g})"
         )
-    else:
-        note = (
-            f"the starting gains are unstable sampled every {T_c:g} s (largest |lambda| "
-            f"{r0:.3g}) and no scaled version is stable (best {r:.3g}: {gains}); tuning "
-            "starts from it, but derivatives through an unstable loop are unreliable"
-        )
-    return chosen, note
+    return (
+        f"{head} and no scaled version is stable (best {r:.3g}: {gains_text(chosen)}); "
+        "tuning starts from it, but derivatives through an unstable loop are unreliable"
+    )

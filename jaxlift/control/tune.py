@@ -51,14 +51,21 @@ from ..model.vector_field import (
     canonical_effects,
 )
 from .controller import AbstractController, ScheduledPID
-from .cost import FAILED_COST, closed_loop_costs, draw_weights, run_residuals, stack_references
+from .cost import (
+    FAILED_COST,
+    closed_loop_costs,
+    draw_weights,
+    over_runs,
+    run_residuals,
+    tuning_runs,
+)
 from .gains import GainSpace
 from .optimisers import LBFGS, Adam, LevenbergMarquardt
 from .performance import (
     CostWeights,
 )
 from .reference import Reference
-from .stability import stabilise_for_clock
+from .stability import clock_candidates, gains_text, unstable_start_note
 
 
 # ------------------------------------------------------------------ tuning
@@ -135,6 +142,8 @@ def tune_gains(
     rtol: float = 1e-5,
     optimiser: LevenbergMarquardt | LBFGS | Adam | None = None,
     stabilise: bool = True,
+    noise_seeds: Sequence[int] | None = None,
+    per_draw_noise: bool = True,
     **sim_kw,
 ) -> TuneResult:
     """Tune the gains of ``controller`` on the log gains, derivatives through the
@@ -167,33 +176,35 @@ def tune_gains(
             :class:`~jaxlift.control.optimisers.Adam`, with their own options.
         weights: cost scales (:class:`~jaxlift.control.performance.CostWeights`).
         progress: tqdm progress bar (stderr).
-        rtol: solver tolerance during tuning; ``sim_kw``: ``sampled``, ``T_c``,
-            ``noise_seed`` of :func:`simulate_closed_loop`.
-        stabilise: with ``sampled=True``, start from gains stable on the clock when
-            ``controller``'s are not (:func:`~jaxlift.control.stability.stabilise_for_clock`;
-            said in :attr:`TuneResult.start_note`).
+        rtol: solver tolerance during tuning; ``sim_kw``: ``sampled``, ``T_c`` (and
+            ``noise_seed``, one seed) of :func:`simulate_closed_loop`.
+        noise_seeds: tune with the speed sensor's noise: the cost is the mean over
+            these seeds (every reference with every seed, :func:`tuning_runs`), so
+            that its gradient is not the gradient of one noise realisation. None:
+            no noise.
+        per_draw_noise: with ``batched_plants``, every draw has noise of its own
+            (seeds shifted per draw): the draws then average over the noise too.
+        stabilise: with ``sampled=True``, start from gains stable on the clock whose
+            runs succeed (:func:`_sampled_start`; said in :attr:`TuneResult.start_note`).
 
     Deterministic: the same inputs give the same gains.
     """
+    if "noise_seed" in sim_kw:  # one seed: the same as a list of one
+        seed = sim_kw.pop("noise_seed")
+        noise_seeds = None if seed is None else [seed] if noise_seeds is None else noise_seeds
+    effects = canonical_effects(effects) if not batched_plants else tuple(effects)
+    n_draws = jax.tree.leaves(plant)[0].shape[0] if batched_plants else None
+    refs, seeds = tuning_runs(references, noise_seeds, n_draws if per_draw_noise else None)
+    sim_kw = dict(sim_kw, rtol=rtol)
+    cfg = dict(batched=batched_plants, robust=robust, alpha=alpha, tail_weight=tail_weight)
+
     note = None
     if stabilise and sim_kw.get("sampled", False):
-        nominal = (
-            jax.tree.map(lambda a: a[0], (plant, tuple(effects)))
-            if batched_plants
-            else (plant, canonical_effects(effects))
+        controller, note = _sampled_start(
+            controller, names, plant, effects, refs, seeds, weights, cfg, sim_kw
         )
-        loads = [float(r.m_load) for r in references]
-        controller, note = stabilise_for_clock(
-            controller, nominal[0], nominal[1], loads, sim_kw.get("T_c", 0.01)
-        )
-
     t_start = time.perf_counter()
-    effects = canonical_effects(effects) if not batched_plants else tuple(effects)
     space = GainSpace.for_controller(controller, names)
-    refs = stack_references(list(references))
-    sim_kw = dict(sim_kw, rtol=rtol)
-
-    cfg = dict(batched=batched_plants, robust=robust, alpha=alpha, tail_weight=tail_weight)
 
     optimiser = LevenbergMarquardt() if optimiser is None else optimiser
     if isinstance(optimiser, LevenbergMarquardt):
@@ -214,7 +225,7 @@ def tune_gains(
             f"gradient must be forward/reverse, method lm/adam/lbfgs: {gradient}, {method}"
         )
     if method == "lm":
-        args = (space, plant, effects, refs, weights, cfg, sim_kw)
+        args = (space, plant, effects, refs, seeds, weights, cfg, sim_kw)
         if trials == "auto":
             trials = "jacobian" if len(space.names) <= 8 else "residuals"
         if trials not in ("jacobian", "residuals"):
@@ -234,7 +245,7 @@ def tune_gains(
 
     def vg(theta):
         return _objective_value_and_grad(
-            theta, space, plant, effects, refs, weights, cfg, sim_kw, gradient
+            theta, space, plant, effects, refs, seeds, weights, cfg, sim_kw, gradient
         )
 
     if method == "lbfgs":
@@ -275,6 +286,62 @@ def tune_gains(
         names=space.names,
         start_note=note,
     )
+
+
+def _sampled_start(controller, names, plant, effects, refs, seeds, weights, cfg, sim_kw):
+    """The start of a sampled tuning: ``controller`` when it is stable on the clock
+    and none of its runs fails; else, of the coarse grid of scaled versions
+    (:func:`~jaxlift.control.stability.clock_candidates`) that are stable on the clock,
+    the one with the lowest tuning objective (the runs of the tuning itself: loads,
+    noise seeds, draws); with none stable, the most stable
+    (:func:`~jaxlift.control.stability.stabilise_for_clock`). Returns the controller and
+    a note (None when the start is kept).
+
+    Why the objective and not stability alone: a start that is stable on the clock
+    without noise can still fail with it -- measured on the shipped logs' true model,
+    the most stable scaled thesis gains (P 20, I 75, D 0.5, N 100, K_aw 15) drift up
+    the mast under the noise and leave it (the reference ends 15 cm below the top),
+    every run failed, the objective was the flat failure penalty and LM stopped at
+    its first evaluation."""
+    stable_radius = None
+    if cfg["batched"]:
+        nominal = jax.tree.map(lambda a: a[0], (plant, tuple(effects)))
+    else:
+        nominal = (plant, effects)
+    loads = sorted({float(m) for m in np.asarray(refs.m_load)})
+    T_c = sim_kw.get("T_c", 0.01)
+
+    def objective(ctrl):
+        space = GainSpace.for_controller(ctrl, names)
+        _, (obj, n_bad) = _residuals_only(
+            jnp.asarray(space.to_theta(ctrl)), space, plant, effects, refs, seeds, weights,
+            cfg, sim_kw,
+        )  # fmt: skip
+        return float(obj), int(n_bad)
+
+    cands = clock_candidates(controller, nominal[0], nominal[1], loads, T_c)
+    stable_radius = cands[0][0]
+    if stable_radius < 1.0:
+        obj, n_bad = objective(controller)
+        if n_bad == 0:
+            return controller, None
+        why = f"{n_bad} of its runs fail (objective {obj:.4g})"
+    else:
+        why = f"they are unstable sampled every {T_c:g} s (largest |lambda| {stable_radius:.3g})"
+    stable = [(r, c) for r, c in cands if r < 1.0]
+    if not stable:
+        r, chosen = min(cands, key=lambda rc: rc[0])
+        return chosen, unstable_start_note(stable_radius, r, chosen, T_c)
+    scored = [(objective(c), r, c) for r, c in stable]
+    (obj, n_bad), r, chosen = min(scored, key=lambda t: (t[0][1] > 0, t[0][0]))
+    note = (
+        f"the starting gains were not used because {why}; tuning starts from the best "
+        f"(lowest tuning objective, {obj:.4g}) of {len(stable)} scaled versions that are "
+        f"stable on the clock: {gains_text(chosen)} (|lambda| {r:.3g})"
+    )
+    if n_bad:
+        note += f"; {n_bad} of its runs still fail"
+    return chosen, note
 
 
 def tune_multistart(
@@ -343,11 +410,12 @@ def _tune_lbfgs(vg, space, controller, steps, progress, t_start) -> TuneResult:
     return _tune_result(space, controller, history, history_s, best, t_start, message)
 
 
-def _objective(theta, space, plant, effects, refs, weights, cfg, sim_kw):
+def _objective(theta, space, plant, effects, refs, seeds, weights, cfg, sim_kw):
     ctrl = space.from_theta(theta)
     c, ok, _ = closed_loop_costs(
-        ctrl, plant, effects, refs, batched_plants=cfg["batched"], weights=weights, **sim_kw
-    )
+        ctrl, plant, effects, refs, batched_plants=cfg["batched"], weights=weights,
+        noise_seeds=seeds, **sim_kw,
+    )  # fmt: skip
     per_draw = jnp.mean(c, axis=1)
     w = draw_weights(per_draw, cfg["robust"], cfg["alpha"], cfg["tail_weight"])
     return jnp.sum(w * per_draw), jnp.sum(~ok)
@@ -355,85 +423,89 @@ def _objective(theta, space, plant, effects, refs, weights, cfg, sim_kw):
 
 # module level, so that repeated tunings of the same problem shape compile once
 @eqx.filter_jit
-def _objective_value_and_grad(theta, space, plant, effects, refs, weights, cfg, sim_kw, mode):
+def _objective_value_and_grad(
+    theta, space, plant, effects, refs, seeds, weights, cfg, sim_kw, mode
+):
     if mode == "reverse":
-        f = lambda th: _objective(th, space, plant, effects, refs, weights, cfg, sim_kw)
+        f = lambda th: _objective(th, space, plant, effects, refs, seeds, weights, cfg, sim_kw)
         return jax.value_and_grad(f, has_aux=True)(theta)
     kw = dict(sim_kw, adjoint=diffrax.ForwardMode())
 
     def f(th):
-        out = _objective(th, space, plant, effects, refs, weights, cfg, kw)
+        out = _objective(th, space, plant, effects, refs, seeds, weights, cfg, kw)
         return out[0], out
 
     grad, out = jax.jacfwd(f, has_aux=True)(theta)
     return out, grad
 
 
-def _residual_objective(theta, space, plant, effects, refs, weights, cfg, sim_kw):
-    """Residual vector ``r`` with ``sum(r**2)`` = the objective (draws x loads, each
+def _residual_objective(theta, space, plant, effects, refs, seeds, weights, cfg, sim_kw):
+    """Residual vector ``r`` with ``sum(r**2)`` = the objective (draws x runs, each
     run's residuals scaled by ``sqrt(w_b / L)``, :func:`draw_weights`), the objective,
     and the number of failed runs."""
     ctrl = space.from_theta(theta)
-    run_ref = eqx.filter_vmap(
-        lambda p, e, r: run_residuals(ctrl, p, e, r, sim_kw, weights), in_axes=(None, None, 0)
-    )
-    if cfg["batched"]:
-        r, ok, c = jax.lax.map(lambda pe: run_ref(pe[0], pe[1], refs), (plant, effects))
-    else:
-        r, ok, c = jax.tree.map(lambda a: a[None], run_ref(plant, effects, refs))
+    r, ok, c = over_runs(
+        lambda p, e, ref, kw: run_residuals(ctrl, p, e, ref, kw, weights),
+        plant, effects, refs, seeds, sim_kw, cfg["batched"],
+    )  # fmt: skip
+    return _weighted(r, ok, c, cfg)
+
+
+def _weighted(r, ok, c, cfg, J=None):
+    """The residuals (and Jacobian) of draws x runs weighted into one sum of squares
+    (mean over the runs, :func:`draw_weights` over the draws), with the objective and
+    the number of failed runs."""
     per_draw = jnp.mean(c, axis=1)
     w = draw_weights(per_draw, cfg["robust"], cfg["alpha"], cfg["tail_weight"])
     scale = jnp.sqrt(w / c.shape[1])
-    return (r * scale[:, None, None]).ravel(), (jnp.sum(w * per_draw), jnp.sum(~ok))
+    aux = (jnp.sum(w * per_draw), jnp.sum(~ok))
+    r = (r * scale[:, None, None]).ravel()
+    if J is None:
+        return r, aux
+    J = (J * scale[:, None, None, None]).reshape(r.shape[0], -1)
+    return r, J, aux
 
 
 @eqx.filter_jit
-def _residuals_and_jacobian(theta, space, plant, effects, refs, weights, cfg, sim_kw):
+def _residuals_and_jacobian(theta, space, plant, effects, refs, seeds, weights, cfg, sim_kw):
     """Residuals, their forward-mode Jacobian w.r.t. the log gains, objective, failures.
     A scheduled PID with more than 11 tuned coordinates is differentiated per load in
     its 11 :meth:`GainSpace.local_values` and chained (measured for 19 coordinates
     and two loads on 2 busy cores: 1.6 s against 2.25 s per Jacobian)."""
     kw = dict(sim_kw, adjoint=diffrax.ForwardMode())
     if isinstance(space.template, ScheduledPID) and theta.shape[0] > 11:
-        return _local_residuals_and_jacobian(theta, space, plant, effects, refs, weights, cfg, kw)
+        return _local_residuals_and_jacobian(
+            theta, space, plant, effects, refs, seeds, weights, cfg, kw
+        )
 
     def f(th):
-        r, aux = _residual_objective(th, space, plant, effects, refs, weights, cfg, kw)
+        r, aux = _residual_objective(th, space, plant, effects, refs, seeds, weights, cfg, kw)
         return r, (r, aux)
 
     J, (r, aux) = jax.jacfwd(f, has_aux=True)(theta)
     return r, J, aux
 
 
-def _local_residuals_and_jacobian(theta, space, plant, effects, refs, weights, cfg, kw):
-    def one(p, e, ref):
+def _local_residuals_and_jacobian(theta, space, plant, effects, refs, seeds, weights, cfg, kw):
+    def one(p, e, ref, sim_kw):
         vals = space.local_values(theta, ref.m_load)
         dvals = jax.jacfwd(space.local_values)(theta, ref.m_load)
 
         def f(v):
-            out = run_residuals(space.local_controller(v), p, e, ref, kw, weights)
+            out = run_residuals(space.local_controller(v), p, e, ref, sim_kw, weights)
             return out[0], out
 
         J_local, (r, ok, c) = jax.jacfwd(f, has_aux=True)(vals)
         return r, J_local @ dvals, ok, c
 
-    run_ref = eqx.filter_vmap(one, in_axes=(None, None, 0))
-    if cfg["batched"]:
-        r, J, ok, c = jax.lax.map(lambda pe: run_ref(pe[0], pe[1], refs), (plant, effects))
-    else:
-        r, J, ok, c = jax.tree.map(lambda a: a[None], run_ref(plant, effects, refs))
-    per_draw = jnp.mean(c, axis=1)
-    w = draw_weights(per_draw, cfg["robust"], cfg["alpha"], cfg["tail_weight"])
-    scale = jnp.sqrt(w / c.shape[1])
-    r = (r * scale[:, None, None]).ravel()
-    J = (J * scale[:, None, None, None]).reshape(r.shape[0], theta.shape[0])
-    return r, J, (jnp.sum(w * per_draw), jnp.sum(~ok))
+    r, J, ok, c = over_runs(one, plant, effects, refs, seeds, kw, cfg["batched"])
+    return _weighted(r, ok, c, cfg, J)
 
 
 @eqx.filter_jit
-def _residuals_only(theta, space, plant, effects, refs, weights, cfg, sim_kw):
+def _residuals_only(theta, space, plant, effects, refs, seeds, weights, cfg, sim_kw):
     """Residuals, objective and failures without derivatives (LM's trial points)."""
-    return _residual_objective(theta, space, plant, effects, refs, weights, cfg, sim_kw)
+    return _residual_objective(theta, space, plant, effects, refs, seeds, weights, cfg, sim_kw)
 
 
 def _tune_lm(

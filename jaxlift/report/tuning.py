@@ -14,7 +14,7 @@ from ..control.closed_loop import (
     ClosedLoopSolution,
 )
 from ..control.controller import AbstractController
-from ..control.cost import FAILED_COST, OSC_FREE_MPS
+from ..control.cost import FAILED_COST, OSC_FREE_MPS, tuning_runs
 from ..control.draws import DrawSet, batch_models, evaluate_draws
 from ..control.performance import (
     CostWeights,
@@ -93,7 +93,7 @@ def robustness_report(
     plant: Plant,
     effects: Sequence[AbstractEffect],
     draws: DrawSet,
-    reference: Reference,
+    reference: Reference | Sequence[Reference],
     out_dir: str | os.PathLike,
     *,
     noise_seed: int | None = 0,
@@ -104,9 +104,14 @@ def robustness_report(
 ) -> tuple[object, dict]:
     """Evaluate each gain set over the draws (the figures as distributions, worst
     case, share of oscillation-free draws, failures), with and without the model's
-    effects, with and without noise, plus the stability tables on the nominal model.
-    Adds sections to ``report`` (a :class:`~jaxlift.report.document.Report`, made if None)
-    and writes figures under ``out_dir/figures``. Returns ``(report, summary)``."""
+    effects, with and without noise (every draw with a noise realisation of its own,
+    seeds from ``noise_seed``), at every reference (load) given, plus the stability
+    tables on the nominal model (first load). Adds sections to ``report`` (a
+    :class:`~jaxlift.report.document.Report`, made if None) and writes figures under
+    ``out_dir/figures``. Returns ``(report, summary)``; ``summary["cases"]`` is keyed
+    ``"<case> @ <load> kg"``."""
+    references = [reference] if isinstance(reference, Reference) else list(reference)
+    reference = references[0]
 
     out = os.fspath(out_dir)
     figdir = os.path.join(out, "figures")
@@ -117,7 +122,8 @@ def robustness_report(
     rep.heading("Robustness over parameter draws")
     rep.text(
         f"{len(draws.draws)} held-out draws of the plant parameters; source: {draws.source}. "
-        f"Reference: the thesis-like sequence at {float(reference.m_load):g} kg, "
+        "Reference: the thesis-like sequence at "
+        f"{', '.join(format(float(r.m_load), 'g') for r in references)} kg, "
         f"{'sampled controller, T_c = ' + format(T_c, 'g') + ' s' if sampled else 'continuous controller'}. "  # noqa: E501
         f"Oscillation-free: sustained oscillation RMS below {OSC_FREE_MPS * 1e3:g} mm/s. "
         f"A failed run (solver failure or fork out of range) costs {FAILED_COST:g} and is counted."
@@ -128,12 +134,14 @@ def robustness_report(
         cases.append(("without effects", (), None))
     if noise_seed is not None:
         cases.append((f"{cases[0][0]}, with noise", effects, noise_seed))
-    for case, effs, seed in cases:
+    for (case_name, effs, seed), ref in ((c, r) for c in cases for r in references):
+        case = f"{case_name} @ {float(ref.m_load):g} kg"
         plants, effs_b = batch_models(plant, effs, draws.draws)
+        noise = None if seed is None else tuning_runs([ref], [seed], len(draws.draws))[1]
         table, rows = {}, []
         for name, ctrl in controllers.items():
             c, ok, fig = evaluate_draws(
-                ctrl, plants, effs_b, reference, weights=weights, noise_seed=seed, **sim
+                ctrl, plants, effs_b, ref, weights=weights, noise_seeds=noise, **sim
             )
             arr = _fig_arrays(fig)
             arr["cost"] = np.where(ok, c, np.nan)
@@ -146,6 +154,8 @@ def robustness_report(
                     cost_worst=float(np.max(c)),
                     tracking_p50_mmps=_finite(np.median, arr["tracking_rms_mmps"]),
                     tracking_max_mmps=_finite(np.max, arr["tracking_rms_mmps"]),
+                    osc_p50_mmps=_finite(np.median, arr["osc_rms_mmps"]),
+                    osc_max_mmps=_finite(np.max, arr["osc_rms_mmps"]),
                     osc_sust_p50_mmps=_finite(np.median, arr["osc_sustained_mmps"]),
                     osc_sust_max_mmps=_finite(np.max, arr["osc_sustained_mmps"]),
                     offset_max_mmps=_finite(
@@ -160,7 +170,7 @@ def robustness_report(
         summary["cases"][case] = rows
         rep.heading(f"Figures over the draws: {case}", 3)
         rep.table(rows, floatfmt=".3g", caption=f"{case}: distribution over the draws")
-        slug = case.replace(" ", "_").replace(",", "")
+        slug = case.replace(" @ ", "_").replace(" ", "_").replace(",", "")
         png = plot_distributions(
             table,
             ["cost", "tracking_rms_mmps", "osc_sustained_mmps", "effort_per_s"],
