@@ -305,3 +305,30 @@ def test_cli_tune_and_control_simulate(tmp_path, fit_dir, posterior_dir):
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"P": 20.0, "Q": 1.0}))
     assert main(["control", "simulate", "--gains", str(bad), "--out", str(sim)]) == 2
+
+
+@pytest.mark.slow
+def test_cli_tune_with_a_hand_written_parameter_file(tmp_path):
+    """Issue #18: `jaxlift tune LOG --params truth.json` (a file not written by `jaxlift
+    fit`) skipped robust tuning and the report. Now the draws come from stated spreads
+    (said in the report), robust tuning runs, and the report judges whether it paid.
+    Tuned as deployed by default: sampled, with noise (one seed here)."""
+    from jaxlift.cli.main import main
+
+    params = tmp_path / "truth.json"
+    params.write_text(json.dumps(CALIBRATED))
+    out = tmp_path / "tune"
+    rc = main(
+        ["tune", "data/lift_500kg.csv", "--params", str(params), "--time-scale", "0.15",
+         "--steps", "2", "--robust-draws", "2", "--eval-draws", "3", "--noise-seeds", "1",
+         "--out", str(out)]
+    )  # fmt: skip
+    assert rc == 0
+    assert (out / "gains_robust.json").exists()
+    report = (out / "report.md").read_text()
+    assert "stated spreads" in report and "sampled at T_c = 0.01 s" in report
+    assert "Does robust tuning pay?" in report
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["robustness"]["n_draws"] == 3
+    assert any(k.endswith("@ 500 kg") for k in summary["robustness"]["cases"])
+    assert "robust_vs_nominal" in summary["robustness"]

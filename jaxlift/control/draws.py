@@ -131,7 +131,15 @@ def parameter_draws(
         why = "; ".join([*notes, "no posterior and no fit covariance"])
         return stated_spread_draws(n, seed, values, effects, why)
     fit_dir = os.fspath(fit_dir)
-    file_values = load_params_json(os.path.join(fit_dir, "params.json"), infos)
+    ppath = os.path.join(fit_dir, "params.json")
+    if not os.path.exists(ppath):  # a parameter file not written by `jaxlift fit`
+        if values is None:
+            raise ParameterError(
+                f"no parameter draws: {ppath} not found, and no model values given"
+            )
+        why = "; ".join([*notes, f"{ppath} not found: no fit covariance"])
+        return stated_spread_draws(n, seed, values, effects, why)
+    file_values = load_params_json(ppath, infos)
     mpath = os.path.join(fit_dir, "metrics.json")
     try:
         with open(mpath, encoding="utf-8") as fh:
