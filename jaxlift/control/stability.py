@@ -345,13 +345,17 @@ def clock_candidates(
     effects: Sequence[AbstractEffect],
     loads: Sequence[float],
     T_c: float = 0.01,
+    *,
+    radius: float | None = None,
 ) -> list[tuple[float, AbstractController]]:
     """``controller`` and the coarse grid of scaled versions of it
     (:data:`STABILISING_FACTORS`: the proportional, integral and derivative gains
     scaled down, the derivative filter capped at ``0.3 / T_c`` or not), each with its
     largest ``|lambda|`` on the clock (:func:`sampled_spectral_radius`); ``controller``
-    first."""
-    out = [(sampled_spectral_radius(controller, plant, effects, loads, T_c), controller)]
+    first (``radius``: its radius, if already known)."""
+    if radius is None:
+        radius = sampled_spectral_radius(controller, plant, effects, loads, T_c)
+    out = [(radius, controller)]
     n_cap = 0.3 / T_c
     for fp in STABILISING_FACTORS["P"]:
         for fi in STABILISING_FACTORS["I_over_P"]:
@@ -389,10 +393,10 @@ def stabilise_for_clock(
     slow speed, and tuning from them stalled at its first step (measured: Jacobian
     columns of 1e18-1e33 where finite differences gave 5e3-8e3). From a stable start
     the forward-mode Jacobian agrees with finite differences."""
-    cands = clock_candidates(controller, plant, effects, loads, T_c)
-    r0 = cands[0][0]
+    r0 = sampled_spectral_radius(controller, plant, effects, loads, T_c)
     if r0 < 1.0:
         return controller, None
+    cands = clock_candidates(controller, plant, effects, loads, T_c, radius=r0)
     r, chosen = min(cands, key=lambda rc: rc[0])
     return chosen, unstable_start_note(r0, r, chosen, T_c)
 

@@ -65,7 +65,12 @@ from .performance import (
     CostWeights,
 )
 from .reference import Reference
-from .stability import clock_candidates, gains_text, unstable_start_note
+from .stability import (
+    clock_candidates,
+    gains_text,
+    sampled_spectral_radius,
+    unstable_start_note,
+)
 
 
 # ------------------------------------------------------------------ tuning
@@ -303,7 +308,6 @@ def _sampled_start(controller, names, plant, effects, refs, seeds, weights, cfg,
     the mast under the noise and leave it (the reference ends 15 cm below the top),
     every run failed, the objective was the flat failure penalty and LM stopped at
     its first evaluation."""
-    stable_radius = None
     if cfg["batched"]:
         nominal = jax.tree.map(lambda a: a[0], (plant, tuple(effects)))
     else:
@@ -319,19 +323,19 @@ def _sampled_start(controller, names, plant, effects, refs, seeds, weights, cfg,
         )  # fmt: skip
         return float(obj), int(n_bad)
 
-    cands = clock_candidates(controller, nominal[0], nominal[1], loads, T_c)
-    stable_radius = cands[0][0]
-    if stable_radius < 1.0:
+    r0 = sampled_spectral_radius(controller, nominal[0], nominal[1], loads, T_c)
+    if r0 < 1.0:
         obj, n_bad = objective(controller)
         if n_bad == 0:
             return controller, None
         why = f"{n_bad} of its runs fail (objective {obj:.4g})"
     else:
-        why = f"they are unstable sampled every {T_c:g} s (largest |lambda| {stable_radius:.3g})"
+        why = f"they are unstable sampled every {T_c:g} s (largest |lambda| {r0:.3g})"
+    cands = clock_candidates(controller, nominal[0], nominal[1], loads, T_c, radius=r0)
     stable = [(r, c) for r, c in cands if r < 1.0]
     if not stable:
         r, chosen = min(cands, key=lambda rc: rc[0])
-        return chosen, unstable_start_note(stable_radius, r, chosen, T_c)
+        return chosen, unstable_start_note(r0, r, chosen, T_c)
     scored = [(objective(c), r, c) for r, c in stable]
     (obj, n_bad), r, chosen = min(scored, key=lambda t: (t[0][1] > 0, t[0][0]))
     note = (
