@@ -19,7 +19,13 @@ from ..model.build import all_param_infos, make_effects, with_params
 from ..model.params import from_unconstrained
 from ..model.simulate import simulate
 from .priors import log_abs_det_jac
-from .problem import NOISE_NAMES, SIM_MAX_STEPS, PosteriorProblem, noise_info
+from .problem import (
+    NOISE_NAMES,
+    SIM_MAX_STEPS,
+    PosteriorProblem,
+    move_nuisances,
+    noise_info,
+)
 
 
 # ------------------------------------------------------------------ log-probability
@@ -40,6 +46,8 @@ def _log_prob_args(problem: PosteriorProblem):
     """The arguments of the jitted log-probability (arrays passed, not closed over:
     13 k closed-over constants made XLA constant-fold for a long time)."""
     plant0, effs0 = problem.model.plant, problem.model.effects
+    n_phys = len(problem.param_names)
+    a_map = np.asarray(problem.nuisance_map, dtype=float).reshape(len(problem.nuisance), n_phys)
     return (
         plant0,
         effs0,
@@ -47,6 +55,8 @@ def _log_prob_args(problem: PosteriorProblem):
         jnp.asarray(problem.rho),
         jnp.asarray(problem.scale),
         jnp.asarray(problem.theta_opt),
+        jnp.asarray(a_map),
+        jnp.asarray(np.asarray(problem.nuisance_opt, dtype=float)),
     )
 
 
@@ -56,9 +66,12 @@ def _prior_key(problem: PosteriorProblem) -> tuple:
 
 @functools.lru_cache(maxsize=32)
 def _single_fn(names: tuple[str, ...], effects: tuple[str, ...], prior_key: tuple,
-               max_steps: int):  # fmt: skip
+               max_steps: int, nuisance: tuple[str, ...] = ()):  # fmt: skip
     """The log-probability of one walker, ``f(theta, args)`` (not jitted); cached by
-    configuration so that a resumed run in the same process compiles nothing new."""
+    configuration so that a resumed run in the same process compiles nothing new.
+    ``nuisance``: the motor parameters and ``x0@<log>`` offsets that move with the
+    sampled coordinates (:attr:`PosteriorProblem.nuisance_map`, the marginal
+    posterior); the offsets in the order of the experiments."""
     infos_all = all_param_infos(make_effects(effects))
     infos = [infos_all[n] if n in infos_all else noise_info(n) for n in names]
     priors = [p for _, p in prior_key]
@@ -66,7 +79,7 @@ def _single_fn(names: tuple[str, ...], effects: tuple[str, ...], prior_key: tupl
     noise_idx = {NOISE_NAMES.index(n): k for k, n in enumerate(names) if n in NOISE_NAMES}
 
     def f(theta, args):
-        plant0, effs0, experiments, rho, scale, ref = args
+        plant0, effs0, experiments, rho, scale, ref, a_map, phi0 = args
         xs = [from_unconstrained(info, theta[k]) for k, info in enumerate(infos)]
         inside = jnp.all(jnp.isfinite(theta))
         log_prior = jnp.zeros(())
@@ -77,6 +90,10 @@ def _single_fn(names: tuple[str, ...], effects: tuple[str, ...], prior_key: tupl
         # out of support: simulate at the optimum instead (cheap, then masked to -inf)
         safe = jnp.where(inside, theta, ref)
         values = {names[k]: from_unconstrained(infos[k], safe[k]) for k in phys}
+        d_theta = safe[jnp.asarray(phys)] - ref[jnp.asarray(phys)]
+        values, experiments = move_nuisances(
+            values, experiments, d_theta, a_map, phi0, nuisance, infos_all
+        )
         plant, effs = with_params(plant0, effs0, values)
         fac = [noise_idx.get(j) for j in range(3)]
         fac = [jnp.ones(()) if k is None else from_unconstrained(infos[k], safe[k]) for k in fac]
@@ -96,12 +113,12 @@ def _single_fn(names: tuple[str, ...], effects: tuple[str, ...], prior_key: tupl
 
 
 @functools.lru_cache(maxsize=32)
-def _batched_fn(names, effects, prior_key, max_steps, batch, devices=None):
+def _batched_fn(names, effects, prior_key, max_steps, batch, devices=None, nuisance=()):
     """The jitted batch function ``core(thetas, args)``. With ``devices`` (a tuple of
     several devices) the batch is split evenly across them with ``shard_map``, each
     device running ``batch`` over its share (the batch size must be a multiple of the
     number of devices: :func:`make_log_prob` pads)."""
-    single = _single_fn(names, effects, prior_key, max_steps)
+    single = _single_fn(names, effects, prior_key, max_steps, nuisance)
     if batch == "vmap":
         inner = jax.vmap(single, in_axes=(0, None))
     elif batch == "map":
@@ -175,7 +192,7 @@ def make_log_prob(
     devs = None if batch == "single" else cpu_devices(devices)
     nd = 1 if devs is None else len(devs)
     key = (problem.names, problem.effects, _prior_key(problem), int(max_steps))
-    core = _batched_fn(*key, batch, devs)
+    core = _batched_fn(*key, batch, devs, problem.nuisance)
     args = _log_prob_args(problem)
 
     def f(thetas):

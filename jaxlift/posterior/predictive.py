@@ -17,9 +17,16 @@ import xarray as xr
 from jaxtyping import ArrayLike, Float
 
 from ..model.build import all_param_infos, make_effects, with_params
-from ..model.params import from_unconstrained
+from ..model.params import from_unconstrained, to_unconstrained
 from ..model.simulate import simulate
-from .problem import NOISE_NAMES, SETTINGS_FILE, SIM_MAX_STEPS, PosteriorProblem, noise_info
+from .problem import (
+    NOISE_NAMES,
+    SETTINGS_FILE,
+    SIM_MAX_STEPS,
+    PosteriorProblem,
+    move_nuisances,
+    noise_info,
+)
 
 
 def hdi(x: np.ndarray, prob: float = 0.9) -> tuple[float, float]:
@@ -42,21 +49,37 @@ def predictive(
     coordinates), ``[{"height": (D, N), "speed": (D, N), "ok": (D,)}]`` per log."""
     plant0, effs0 = problem.model.plant, problem.model.effects
     bs = max(1, min(batch_size, int(np.shape(thetas)[0])))
-    fn = _predictive_fn(problem.names, problem.effects, bs)
-    res = fn(jnp.asarray(thetas), (plant0, effs0, problem.experiments))
+    fn = _predictive_fn(problem.names, problem.effects, bs, problem.nuisance)
+    n_phys = len(problem.param_names)
+    a_map = np.asarray(problem.nuisance_map, dtype=float).reshape(len(problem.nuisance), n_phys)
+    args = (
+        plant0,
+        effs0,
+        problem.experiments,
+        jnp.asarray(problem.theta_opt),
+        jnp.asarray(a_map),
+        jnp.asarray(np.asarray(problem.nuisance_opt, dtype=float)),
+    )
+    res = fn(jnp.asarray(thetas), args)
     return [{"height": np.asarray(h), "speed": np.asarray(v), "ok": np.asarray(ok)}
             for h, v, ok in res]  # fmt: skip
 
 
 @functools.lru_cache(maxsize=16)
-def _predictive_fn(names: tuple[str, ...], effects: tuple[str, ...], batch_size: int):
+def _predictive_fn(
+    names: tuple[str, ...], effects: tuple[str, ...], batch_size: int, nuisance: tuple = ()
+):
     infos_all = all_param_infos(make_effects(effects))
     infos = [infos_all[n] if n in infos_all else noise_info(n) for n in names]
     phys = [k for k, n in enumerate(names) if n not in NOISE_NAMES]
 
     def one(theta, args):
-        plant0, effs0, experiments = args
+        plant0, effs0, experiments, ref, a_map, phi0 = args
         values = {names[k]: from_unconstrained(infos[k], theta[k]) for k in phys}
+        d_theta = theta[jnp.asarray(phys)] - ref[jnp.asarray(phys)]
+        values, experiments = move_nuisances(
+            values, experiments, d_theta, a_map, phi0, nuisance, infos_all
+        )
         plant, effs = with_params(plant0, effs0, values)
         outs = []
         for exp in experiments:
@@ -106,4 +129,17 @@ def posterior_draws(
     idx = rng.choice(m, size=n, replace=n > m)
     values = {k: float(v) for k, v in settings["values"].items()}
     draws = [{**values, **{k: float(flat[k][i]) for k in names}} for i in idx]
+    nuisance = [n for n in settings.get("nuisance", []) if not n.startswith("x0@")]
+    if nuisance:  # the motor set that goes with each draw (marginal posterior)
+        infos = all_param_infos(make_effects(settings["effects"]))
+        a_map = np.asarray(settings["nuisance_map"], dtype=float)
+        phi0 = np.asarray(settings["nuisance_opt"], dtype=float)
+        th0 = np.asarray(settings["theta_opt"], dtype=float)
+        phys = [k for k, n in enumerate(settings["names"]) if n not in NOISE_NAMES]
+        for d in draws:
+            th = np.array([float(to_unconstrained(infos[n], d[n])) for n in names])
+            phi = phi0 + a_map @ (th - th0[phys])
+            for j, n in enumerate(settings["nuisance"]):
+                if not n.startswith("x0@"):
+                    d[n] = float(from_unconstrained(infos[n], phi[j]))
     return list(settings["effects"]), draws

@@ -8,10 +8,17 @@ The statistical model, in one place:
   unconstrained coordinates of each :class:`~jaxlift.ParamInfo` (``log``/``logit``); the
   log-density includes the log-Jacobian of that transform, so the posterior is the one
   of the *physical* parameters under the priors below. Results are reported physically.
-* **Fixed**: everything else at the least-squares values (the motor set among them), and
-  each log's initial-height offset ``x0`` at its least-squares value (a nuisance
-  parameter that the data fix to ~0.04 mm and that hardly correlates with the sampled
-  ones). The posterior is therefore conditional on the calibrated motor map.
+* **Nuisances, marginalised** (the default, ``conditioning="marginal"``): the motor set
+  (``k1..z3``, unless sampled) and each log's initial-height offset ``x0`` are not held
+  at their least-squares values but move with the sampled parameters along their
+  conditional optimum, linearised at the least-squares optimum (a Gauss--Newton
+  profile): ``phi(theta) = phi_opt + A (theta - theta_opt)``, ``A = -J_phi^+ J_theta``
+  from the forward-mode Jacobian of the whitened innovations. For a model linear in the
+  nuisances this *is* their marginal (with flat priors on them): the sampled
+  parameters' intervals then carry the nuisances' uncertainty, at no extra cost per
+  evaluation. Holding them fixed (``conditioning="conditional"``, ``--conditional``)
+  made the bulk modulus's interval 40 % narrower than the fit's own standard error
+  (issue #17). Everything else stays at the least-squares values.
 * **Priors** (:data:`DEFAULT_PRIORS`, :func:`default_prior`): explicit, physically
   motivated, wide. ``beta`` log-normal around ideal oil (1.4 GPa, x/÷ 3 at one sigma);
   friction log-normal around the nominal values of docs/model.md (x/÷ 10, ``cf_in`` x/÷ 3);
@@ -107,6 +114,13 @@ class PosteriorProblem:
         cov_theta: covariance of the least-squares estimate in unconstrained
             coordinates (starts the walkers).
         ls_info: least-squares facts for the report (chi2/N per log, rho1, ...).
+        nuisance: names of the nuisance coordinates that move with the sampled ones
+            (motor parameters, then ``x0@<log>`` offsets); empty when conditional.
+        nuisance_map: ``A``, shape ``(len(nuisance), n_phys)``: nuisance change per
+            change of the sampled physical coordinates (unconstrained; offsets in m).
+        nuisance_opt: the nuisances' least-squares values (unconstrained; offsets 0,
+            as ``experiments`` already carry them).
+        conditioning: ``"marginal"`` or ``"conditional"`` (see the module docstring).
     """
 
     names: tuple[str, ...]
@@ -122,6 +136,10 @@ class PosteriorProblem:
     theta_opt: np.ndarray
     cov_theta: np.ndarray
     ls_info: dict
+    nuisance: tuple[str, ...] = ()
+    nuisance_map: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0)))
+    nuisance_opt: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    conditioning: str = "conditional"
 
     @property
     def ndim(self) -> int:
@@ -161,7 +179,50 @@ class PosteriorProblem:
             "log_hashes": [_exp_hash(e) for e in self.experiments],
             "ls_info": self.ls_info,
             "priors": {n: prior_to_json(p) for n, p in self.priors.items()},
+            "conditioning": self.conditioning,
+            "nuisance": list(self.nuisance),
+            "nuisance_map": np.asarray(self.nuisance_map).tolist(),
+            "nuisance_opt": np.asarray(self.nuisance_opt).tolist(),
         }
+
+    def nuisance_values(self, theta: Float[ArrayLike, " P"]) -> dict[str, float]:
+        """The motor parameters (physical) and offset changes [m] that go with the
+        sampled coordinates ``theta`` (:attr:`nuisance_map`); empty when conditional."""
+        if not self.nuisance:
+            return {}
+        phys = [k for k, n in enumerate(self.names) if n not in NOISE_NAMES]
+        d = np.asarray(theta, dtype=float)[phys] - self.theta_opt[phys]
+        phi = self.nuisance_opt + self.nuisance_map @ d
+        infos = all_param_infos(make_effects(self.effects))
+        out = {}
+        for n, v in zip(self.nuisance, phi, strict=True):
+            out[n] = float(v) if n.startswith("x0@") else float(from_unconstrained(infos[n], v))
+        return out
+
+
+def move_nuisances(values, experiments, d_theta, a_map, phi0, nuisance, infos_all):
+    """``values`` (a dict, physical) and ``experiments`` with the nuisances moved along
+    their linearised conditional optimum ``phi0 + a_map @ d_theta`` (``d_theta``: the
+    sampled physical coordinates minus their optimum, unconstrained): the motor
+    parameters among ``nuisance`` (in ``values``) and the ``x0@<log>`` offsets (added
+    to the experiments' initial heights, in their order). Traceable (JAX); the one
+    place the log-probability and the posterior predictive apply the marginalisation."""
+    if not nuisance:
+        return values, experiments
+    phi = phi0 + a_map @ d_theta
+    values = dict(values)
+    offsets = []
+    for j, n in enumerate(nuisance):
+        if n.startswith("x0@"):
+            offsets.append(phi[j])
+        else:
+            values[n] = from_unconstrained(infos_all[n], phi[j])
+    if offsets:
+        experiments = tuple(
+            eqx.tree_at(lambda e: e.inputs.x0, exp, exp.inputs.x0 + offsets[i])
+            for i, exp in enumerate(experiments)
+        )
+    return values, experiments
 
 
 def _exp_hash(e: Experiment) -> str:
@@ -199,6 +260,7 @@ def prepare_posterior(
     priors: Mapping[str, Prior] | None = None,
     n_starts: int = 2,
     seed: int = 0,
+    conditioning: str = "marginal",
     progress: Callable[[str], None] | None = None,
 ) -> PosteriorProblem:
     """Set up the posterior: least squares first, then the likelihood's noise model.
@@ -214,6 +276,11 @@ def prepare_posterior(
         sample_noise: also sample a noise-scale factor per signal.
         priors: priors overriding :func:`default_prior` (physical units).
         n_starts, seed: multi-start of the full fit (only when ``params`` is None).
+        conditioning: ``"marginal"`` (default): the motor set (unless sampled) and the
+            initial-height offsets move with the sampled parameters along their
+            linearised conditional optimum, so that their uncertainty reaches the
+            intervals; ``"conditional"``: they stay at the least-squares values (the
+            intervals are then conditional on them, and narrower).
         progress: called with a line of text per stage.
 
     Returns:
@@ -224,6 +291,8 @@ def prepare_posterior(
     x64_check()
     if likelihood not in ("ar1", "white"):
         raise ValueError(f"likelihood must be 'ar1' or 'white', not {likelihood!r}")
+    if conditioning not in ("marginal", "conditional"):
+        raise ValueError(f"conditioning must be 'marginal' or 'conditional', not {conditioning!r}")
     effs = make_effects(effects)
     eff_names = tuple(e.name for e in effs)
     infos_all = all_param_infos(effs)
@@ -308,21 +377,46 @@ def prepare_posterior(
         theta_opt=theta_opt,
         cov_theta=np.eye(len(all_names)),
         ls_info=ls_info,
+        conditioning=conditioning,
     )
+    if conditioning == "marginal":
+        motor = [n for n in PARAMETER_SETS["motor"] if n not in all_names]
+        say(
+            f"nuisances marginalised (linearised conditional optimum): {', '.join(motor)} "
+            "and each log's initial-height offset"
+        )
+    else:
+        motor = []
+        say("nuisances held at their least-squares values (conditional posterior)")
     say("Laplace covariance at the optimum (starts the walkers)")
-    problem.cov_theta = _start_covariance(problem)
+    problem.cov_theta, a_map, nuis, phi0 = _laplace(problem, motor, conditioning == "marginal")
+    problem.nuisance, problem.nuisance_map, problem.nuisance_opt = nuis, a_map, phi0
+    problem.ls_info["marginal_sd"] = {
+        n: float(math.sqrt(problem.cov_theta[k, k])) for k, n in enumerate(problem.names)
+    }
     return problem
 
 
-def _start_covariance(problem: PosteriorProblem) -> np.ndarray:
-    """A Laplace covariance at the optimum in the unconstrained coordinates: the
-    Gauss--Newton information of the likelihood (forward-mode Jacobian of the whitened
-    AR(1) innovations through the simulation) plus the priors' curvature. A direction
-    the data do not constrain (``cf_in`` against ``cf_out``) so starts at the prior's
-    width. The noise factors start with a spread of 2 %."""
+def _laplace(
+    problem: PosteriorProblem, motor: Sequence[str], marginal: bool
+) -> tuple[np.ndarray, np.ndarray, tuple[str, ...], np.ndarray]:
+    """A Laplace covariance at the optimum in the unconstrained coordinates, and the
+    nuisances' map: the Gauss--Newton information of the likelihood (forward-mode
+    Jacobian ``J = [J_theta, J_phi]`` of the whitened AR(1) innovations through the
+    simulation, ``phi`` = the ``motor`` parameters and, when ``marginal``, each log's
+    initial-height offset) plus the priors' curvature. Marginal: ``A = -J_phi^+
+    J_theta`` (pseudo-inverse on column-scaled ``J_phi``: a nuisance the data do not
+    determine, e.g. the motor map of a stage no log lifts through, does not move) and
+    the information ``(J_theta + J_phi A)^T (J_theta + J_phi A)``, the Schur complement
+    of the nuisances' block. A direction the data do not constrain (``cf_in`` against
+    ``cf_out``) so starts at the prior's width. The noise factors start with a spread
+    of 2 %. Returns ``(cov_theta, A, nuisance names, nuisance optimum)``."""
     names = problem.names
     phys = [k for k, n in enumerate(names) if n not in NOISE_NAMES]
-    infos = [problem.infos[names[k]] for k in phys]
+    infos_all = all_param_infos(make_effects(problem.effects))
+    infos = [problem.infos[names[k]] for k in phys] + [infos_all[m] for m in motor]
+    n_th, n_mot = len(phys), len(motor)
+    n_off = len(problem.experiments) if marginal else 0
     plant0, effs0 = problem.model.plant, problem.model.effects
     args = (plant0, effs0, problem.experiments, jnp.asarray(problem.rho),
             jnp.asarray(problem.scale))  # fmt: skip
@@ -333,6 +427,9 @@ def _start_covariance(problem: PosteriorProblem) -> np.ndarray:
         plant, effs = with_params(plant0, effs0, values)
         out = []
         for i, exp in enumerate(experiments):
+            if n_off:
+                dx = th[n_th + n_mot + i]
+                exp = eqx.tree_at(lambda e: e.inputs.x0, exp, exp.inputs.x0 + dx)
             sol = simulate(plant, effs, exp.inputs, adjoint=diffrax.ForwardMode())
             r = exp.scaled_residuals(sol)
             for k in exp.signals:
@@ -341,15 +438,27 @@ def _start_covariance(problem: PosteriorProblem) -> np.ndarray:
                 out.append(e / scale[i, k])
         return jnp.concatenate(out)
 
-    th0 = jnp.asarray(problem.theta_opt[phys])
+    phi0 = np.array(
+        [float(to_unconstrained(infos_all[m], problem.values[m])) for m in motor] + [0.0] * n_off
+    )
+    th0 = jnp.asarray(np.concatenate([problem.theta_opt[phys], phi0]))
     jac = np.asarray(jax.jit(jax.jacfwd(innovations))(th0, args))
     jac = np.where(np.isfinite(jac), jac, 0.0)
+    j_th, j_phi = jac[:, :n_th], jac[:, n_th:]
+    nuis = tuple(motor) + tuple(f"x0@{e.name}" for e in problem.experiments[:n_off])
+    if j_phi.shape[1]:
+        col = np.linalg.norm(j_phi, axis=0)
+        col = np.where(col > 0, col, 1.0)
+        a_map = -(np.linalg.pinv(j_phi / col, rcond=1e-9) @ j_th) / col[:, None]
+        j_th = j_th + j_phi @ a_map
+    else:
+        a_map = np.zeros((0, n_th))
     curv = np.array(
         [1.0 / math.log(p.factor) ** 2 if isinstance(p, LogNormal) else 1e-2
          for p in (problem.priors[n] for n in names)]
     )  # fmt: skip
     h = np.diag(curv)
-    h[np.ix_(phys, phys)] += jac.T @ jac
+    h[np.ix_(phys, phys)] += j_th.T @ j_th
     w, v = np.linalg.eigh(h)
     w = np.maximum(w, 1e-12 * w.max())
     cov = (v / w) @ v.T
@@ -357,7 +466,7 @@ def _start_covariance(problem: PosteriorProblem) -> np.ndarray:
         if n in NOISE_NAMES:
             cov[j, :] = cov[:, j] = 0.0
             cov[j, j] = 0.02**2
-    return 0.5 * (cov + cov.T)
+    return 0.5 * (cov + cov.T), a_map, nuis, phi0
 
 
 def problem_from_settings(settings: Mapping, logs: Sequence[Log]) -> PosteriorProblem:
@@ -391,6 +500,11 @@ def problem_from_settings(settings: Mapping, logs: Sequence[Log]) -> PosteriorPr
         theta_opt=np.asarray(settings["theta_opt"]),
         cov_theta=np.asarray(settings["cov_theta"]),
         ls_info=dict(settings["ls_info"]),
+        # chains stored before issue #17 were conditional on the nuisances
+        nuisance=tuple(settings.get("nuisance", ())),
+        nuisance_map=np.asarray(settings.get("nuisance_map", np.zeros((0, 0))), dtype=float),
+        nuisance_opt=np.asarray(settings.get("nuisance_opt", []), dtype=float),
+        conditioning=settings.get("conditioning", "conditional"),
     )
 
 

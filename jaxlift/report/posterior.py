@@ -257,12 +257,30 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
     rep.text(f"Likelihood: {lik}")
     if any(n in NOISE_NAMES for n in problem.names):
         rep.text("Noise-scale factors per signal are sampled (`noise_*`).")
+    offsets = ", ".join(f"`{k}` {v * 1e3:+.3f} mm" for k, v in problem.x0_offsets.items())
+    if problem.nuisance:
+        moving = ", ".join(f"`{n}`" for n in problem.nuisance if not n.startswith("x0@"))
+        held = (
+            f"Marginalised, not fixed: {moving or 'no motor parameter'} and each log's "
+            f"initial-height offset (least squares: {offsets}) move with the sampled "
+            "parameters along their conditional optimum, linearised at the least-squares "
+            "optimum (a Gauss-Newton profile; exact for a model linear in them), so that "
+            "their uncertainty reaches the intervals. Fixed at the least-squares values: "
+            "every other parameter not sampled."
+        )
+    else:
+        held = (
+            "Fixed at the least-squares values (`--conditional`): all parameters not "
+            "sampled (the motor set among them: the posterior is conditional on the "
+            "calibrated motor map) and each log's initial-height offset: "
+            f"{offsets}. The intervals are conditional on them, and narrower than the "
+            "marginal ones."
+        )
     rep.text(
-        "Fixed at the least-squares values: all parameters not sampled (the motor set "
-        "among them: the posterior is conditional on the calibrated motor map) and each "
-        "log's initial-height offset: "
-        + ", ".join(f"`{k}` {v * 1e3:+.3f} mm" for k, v in problem.x0_offsets.items())
-        + ". Walkers start around the least-squares optimum, spread by its covariance "
+        held + " What the intervals leave out: model error. They assume the model (with its "
+        "effects) is right; whether it is, is the diagnosis's question (`jaxlift "
+        "diagnose`), and a model that misses an effect gives intervals around the wrong "
+        "values. Walkers start around the least-squares optimum, spread by its covariance "
         "(combined with the priors, so that directions the data do not determine start "
         "at the prior's width)."
     )

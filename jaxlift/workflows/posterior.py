@@ -34,6 +34,7 @@ def run_posterior(
     sample: Sequence[str] | str | None = None,
     likelihood: str = "ar1",
     sample_noise: bool = False,
+    conditioning: str = "marginal",
     n_walkers: int = 32,
     max_steps: int = 20_000,
     seed: int = 0,
@@ -58,7 +59,10 @@ def run_posterior(
     If ``out_dir`` already has a chain, the run resumes it; the requested settings must
     match the stored ones (else :class:`ValueError`; ``move`` among them: a directory
     from before the choice of move holds a stretch-move chain). ``move`` and
-    ``devices``: see :func:`sample_posterior`. Returns the content of
+    ``devices``: see :func:`sample_posterior`. ``conditioning``: ``"marginal"``
+    (default: the motor set and the initial-height offsets move with the sampled
+    parameters, :func:`~jaxlift.posterior.problem.prepare_posterior`) or
+    ``"conditional"`` (held at their least-squares values). Returns the content of
     ``posterior.json``."""
 
     say = progress or (lambda _line: None)
@@ -74,6 +78,7 @@ def run_posterior(
         "sample": None if sample is None else as_list(sample),
         "likelihood": likelihood,
         "sample_noise": bool(sample_noise),
+        "conditioning": conditioning,
         "n_walkers": int(n_walkers),
         "seed": int(seed),
         "move": move.name,
@@ -83,6 +88,7 @@ def run_posterior(
         with open(settings_path, encoding="utf-8") as fh:
             stored = json.load(fh)
         stored["requested"].setdefault("move", "stretch")  # the only one before
+        stored["requested"].setdefault("conditioning", "conditional")  # before issue #17
         diff = {
             k: (stored["requested"].get(k), v)
             for k, v in requested.items()
@@ -103,7 +109,7 @@ def run_posterior(
                              "another --out directory")  # fmt: skip
         problem = prepare_posterior(
             logs, effects=effects, params=params, sample=sample, likelihood=likelihood,
-            sample_noise=sample_noise, progress=progress, seed=seed,
+            sample_noise=sample_noise, progress=progress, seed=seed, conditioning=conditioning,
         )  # fmt: skip
         with open(settings_path, "w", encoding="utf-8") as fh:
             json.dump({"requested": requested, "problem": problem.settings()}, fh, indent=1)
