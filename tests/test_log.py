@@ -200,11 +200,11 @@ BAD_FILES = {
     "speed-text": (join(set_field(T, 7, "speed_mps", "fast")), 7, "speed_mps", "'fast'"),
     "speed-nan": (join(set_field(T, 7, "speed_mps", "nan")), 7, "speed_mps", "finite"),
     "pressure-inf": (join(set_field(T, 7, "pressure_pa", "inf")), 7, "pressure_pa", "finite"),
-    "pressure-negative": (
-        join(set_field(T, 7, "pressure_pa", "-1")),
+    "pressure-below-vacuum": (
+        join(set_field(T, 7, "pressure_pa", "-2e5")),
         7,
         "pressure_pa",
-        "at least 0 Pa",
+        "gauge pressure of at least -101325 Pa",
     ),
     "time-backwards": (join(set_field(T, 7, "time_s", "0.03")), 7, "time_s", "backwards"),
     "time-repeats": (join(set_field(T, 7, "time_s", "0.04")), 7, "time_s", "repeated"),
@@ -298,7 +298,7 @@ BAD_ARRAYS = {
         "time_s",
         "gap",
     ),
-    "negative-pressure": ({"pressure_pa": np.full(n, -1.0)}, 2, "pressure_pa", "0 Pa"),
+    "below-vacuum": ({"pressure_pa": np.full(n, -1.1e5)}, 2, "pressure_pa", "-101325 Pa"),
     "length-mismatch": ({"pwm": np.zeros(n - 1)}, None, "pwm", f"expected {n} values"),
     "two-dimensional": ({"height_m": np.zeros((n, 2))}, None, "height_m", "shape (20, 2)"),
     "strings": ({"load_kg": np.array(["1"] * n)}, None, "load_kg", "dtype <U1"),

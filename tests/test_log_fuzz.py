@@ -1,12 +1,13 @@
 """Fuzzing the log readers (hypothesis, derandomized: the same examples every run):
-whatever the bytes of a CSV file or the columns of a Parquet file, ``read_log``
-returns a valid ``Log`` or raises ``LogError`` naming the file, never another
-exception, a NaN or a silent drop."""
+whatever the bytes of a CSV file, the columns of a Parquet file or the channels of an
+MDF 4 file (read as they are, and resampled), ``read_log`` returns a valid ``Log`` or
+raises ``LogError`` naming the file, never another exception, a NaN or a silent drop."""
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from asammdf import MDF, Signal
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -67,10 +68,10 @@ def csv_bytes(draw):
     return data
 
 
-def _check(path):
+def _check(path, **options):
     try:
         with np.errstate(all="raise"):
-            log = jl.read_log(path)
+            log = jl.read_log(path, **options)
     except jl.LogError as err:
         assert str(err).startswith(str(path)), err
         return None
@@ -133,6 +134,72 @@ def test_any_parquet_table_gives_a_log_or_a_named_error(tmp_path, table):
         _check(path)
 
 
+@st.composite
+def mdf_groups(draw):
+    """Channel groups ``[(time stamps, {name: Signal keyword arguments})]`` of an MDF 4
+    file, and how many bytes of the written file to keep (None: all)."""
+    n = draw(st.integers(0, 10))
+    t = np.round(np.arange(n) * 0.01, 9)
+    if n > 1 and draw(st.booleans()):
+        k = draw(st.integers(1, n - 1))
+        t[k:] += draw(st.sampled_from([-0.02, -0.01, 0.002, 0.03, 1.0]))  # back, repeat, ...
+    cols = [c for c in ("pwm", "height_m", "load_kg") if draw(st.integers(0, 19))]  # mostly
+    cols += draw(st.lists(st.sampled_from(["time_s", "speed_mps", "pressure_pa", "note"]),
+                          max_size=3, unique=True))  # fmt: skip
+    rows = _valid_rows(n, [c if c in COLUMNS else "time_s" for c in cols])
+    main, other = {}, {}
+    for j, c in enumerate(cols):
+        vals = np.array([float(r[j]) for r in rows])
+        kind = draw(st.sampled_from(["float"] * 12 + ["int", "text", "weird", "weird",
+                                                      "invalid", "other_clock"]))  # fmt: skip
+        kw: dict = {"samples": vals}
+        if kind == "int":
+            kw = {"samples": vals.astype(np.int64)}
+        elif kind == "text" and n:
+            kw = {"samples": np.array([f"{v:g}".encode() for v in vals]), "encoding": "utf-8"}
+        elif kind == "weird" and n:
+            vals[draw(st.integers(0, n - 1))] = draw(
+                st.sampled_from([np.nan, np.inf, -1.0, 5.0, -2e5, 1e300])
+            )
+        elif kind == "invalid" and n:
+            bits = np.zeros(n, bool)
+            bits[draw(st.integers(0, n - 1))] = True
+            kw = {"samples": vals, "invalidation_bits": bits}
+        if kind == "other_clock" and n > 1:
+            other[c] = {"samples": vals[:-1]}
+        else:
+            main[c] = kw
+    groups = [(t, main)] + ([(t[:-1] + 0.001, other)] if other else [])
+    keep = (
+        draw(st.one_of(st.none(), st.integers(0, 4000))) if draw(st.integers(0, 4)) == 0 else None
+    )
+    return groups, keep
+
+
+def _write_mdf(path, spec):
+    groups, keep = spec
+    with MDF(version="4.10") as mdf:
+        for t, chans in groups:
+            if chans:
+                mdf.append([Signal(timestamps=t, name=c, **kw) for c, kw in chans.items()])
+        mdf.save(path, overwrite=True)
+    if keep is not None:
+        path.write_bytes(path.read_bytes()[:keep])  # a damaged (cut) file
+
+
+@SETTINGS
+@given(spec=mdf_groups())
+def test_any_mdf_channels_give_a_log_or_a_named_error(tmp_path, spec):
+    path = tmp_path / "fuzz.mf4"
+    _write_mdf(path, spec)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", jl.UnusedColumnsWarning)
+        _check(path)
+        _check(path, resample=0.01)  # resampling gives a valid log or a named error too
+
+
 def test_fuzzer_reaches_both_outcomes(tmp_path):
     """The generators are not vacuous: among their first examples some files are valid
     logs and some are refused (checked on the fixed examples of ``derandomize``)."""
@@ -151,6 +218,18 @@ def test_fuzzer_reaches_both_outcomes(tmp_path):
 
     collect()
     assert outcomes == {True, False}
+
+    mdf_outcomes = set()
+
+    @SETTINGS
+    @given(spec=mdf_groups())
+    def collect_mdf(spec):
+        path = tmp_path / "c.mf4"
+        _write_mdf(path, spec)
+        mdf_outcomes.add(_check(path) is not None)
+
+    collect_mdf()
+    assert mdf_outcomes == {True, False}
 
 
 pytestmark = pytest.mark.filterwarnings("ignore::jaxlift.UnusedColumnsWarning")

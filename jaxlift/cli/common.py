@@ -1,9 +1,10 @@
-"""What every command shares: float64 at the program's start, and reading logs with
-unused columns reported once.
+"""What every command shares: float64 at the program's start, and reading logs (the
+channel map and resampling options, unused columns reported once).
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 import warnings
 
@@ -38,14 +39,87 @@ def setup_jax() -> None:
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
-def read_logs(paths):
+LOG_COLUMNS = "time_s, pwm, height_m, load_kg, speed_mps, pressure_pa"
+
+
+def _channel_pair(text: str) -> tuple[str, str]:
+    column, sep, channel = text.partition("=")
+    if not sep or not column.strip() or not channel.strip():
+        raise argparse.ArgumentTypeError(f"expected COLUMN=NAME, got {text!r}")
+    return column.strip(), channel.strip()
+
+
+def _period(text: str) -> float:
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a sample period > 0 [s], got {text!r}")
+    return value
+
+
+def add_log_options(p: argparse.ArgumentParser) -> None:
+    """The options of every command that reads logs: the channel map and resampling
+    (docs/data.md)."""
+    g = p.add_argument_group("log files (docs/data.md)")
+    g.add_argument(
+        "--channel", action="append", default=[], type=_channel_pair, metavar="COLUMN=NAME",
+        help=f"read the log column COLUMN ({LOG_COLUMNS}) from the file's column or channel "
+        "NAME (values still in SI units); repeatable; overrides --channel-map",
+    )  # fmt: skip
+    g.add_argument(
+        "--channel-map", metavar="FILE.json",
+        help='channel map: a JSON object {"COLUMN": "NAME", ...} (keys starting with _ are '
+        "comments); default: every column under its own name",
+    )  # fmt: skip
+    g.add_argument(
+        "--resample", type=_period, default=None, metavar="DT",
+        help="resample jittered time stamps onto a uniform clock of period DT [s] (height, "
+        "speed, pressure interpolated linearly; pwm, load held); default: a time step more "
+        "than 1%% off the sample period is an error",
+    )  # fmt: skip
+
+
+def log_options(args) -> dict:
+    """``read_log``'s keyword arguments from the options of :func:`add_log_options`
+    (``channel_map``, ``resample``); ValueError naming the file for a bad channel map."""
+    import json
+
+    from jaxlift.model.log_validation import channel_sources
+
+    channel_map: dict[str, str] = {}
+    path = getattr(args, "channel_map", None)
+    if path:
+        try:
+            with open(path, encoding="utf-8") as f:
+                spec = json.load(f)
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise ValueError(f"{path}: expected a JSON channel map, got {e}") from None
+        if not isinstance(spec, dict):
+            raise ValueError(f"{path}: expected a JSON object {{column: channel name}}")
+        channel_map = {k: v for k, v in spec.items() if not k.startswith("_")}
+    channel_map.update(dict(getattr(args, "channel", None) or []))
+    try:
+        channel_sources(channel_map)  # refused before any log is read
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}" if path else str(e)) from None
+    return {"channel_map": channel_map or None, "resample": getattr(args, "resample", None)}
+
+
+def read_logs(paths, args=None):
+    """The logs at ``paths``, read with the options of ``args`` (:func:`add_log_options`),
+    unused columns reported once each as a ``note:`` on standard error."""
     import jaxlift as jl
 
+    options = log_options(args) if args is not None else {}
     logs = []
     for p in paths:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", jl.UnusedColumnsWarning)
-            logs.append(jl.read_log(p))
+            logs.append(jl.read_log(p, **options))
         for w in caught:
             print(f"note: {w.message}", file=sys.stderr)
     return logs

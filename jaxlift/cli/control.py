@@ -22,7 +22,7 @@ def cmd_tune(args) -> int:
     from jaxlift.cli.common import read_logs
     from jaxlift.workflows.tune import calibrated_model, run_tune
 
-    logs = read_logs(args.logs)
+    logs = read_logs(args.logs, args)
     plant, effects, params_path = calibrated_model(
         args.params,
         args.effects,
@@ -119,7 +119,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "(posterior, the least-squares covariance of the fit, or stated spreads); writes "
         "gains.json, figures and a report.",
     )
-    p.add_argument("logs", nargs="+", help="logs (CSV): their loads are the tuning loads")
+    p.add_argument("logs", nargs="+", help="logs (docs/data.md): their loads are the tuning loads")
     _common(p, tune=True)
     p.add_argument("--posterior", help="posterior directory (jaxlift posterior)")
     p.add_argument("--scheduled", action="store_true", help="tune the scheduled PID (18 + N)")

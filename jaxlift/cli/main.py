@@ -7,14 +7,14 @@ import pathlib
 import sys
 from importlib.metadata import version
 
-from .common import read_logs, setup_jax
+from .common import add_log_options, log_options, read_logs, setup_jax
 
 
 def cmd_simulate(args) -> int:
     import jaxlift as jl
     from jaxlift.workflows.simulate import run_simulate
 
-    (log,) = read_logs([args.log])
+    (log,) = read_logs([args.log], args)
     plant, effects = jl.load_model(args.params, args.effects)
     out = pathlib.Path(args.out)
     _, rms = run_simulate(log, plant, effects, out)
@@ -30,8 +30,8 @@ def cmd_fit(args) -> int:
     import jaxlift as jl
     from jaxlift.workflows.fit import run_fit
 
-    fit_logs = read_logs(args.logs)
-    val_logs = read_logs(args.validate or [])
+    fit_logs = read_logs(args.logs, args)
+    val_logs = read_logs(args.validate or [], args)
     init = None
     if args.params:
         init = jl.load_params_json(args.params, jl.all_param_infos("all"))
@@ -71,8 +71,8 @@ def cmd_fit(args) -> int:
 def cmd_diagnose(args) -> int:
     from jaxlift.workflows.diagnose import run_diagnose
 
-    logs = read_logs(args.logs)
-    val = read_logs(args.validate or [])
+    logs = read_logs(args.logs, args)
+    val = read_logs(args.validate or [], args)
     print(
         f"diagnosing {len(logs)} log(s); held out: {', '.join(lg.name for lg in val) or 'none'}",
         flush=True,
@@ -111,6 +111,7 @@ def cmd_fleet(args) -> int:
         "seed": args.seed,
         # the workers register the user's effects themselves (their own processes)
         "effect_files": [str(pathlib.Path(f).resolve()) for f in args.effect_file],
+        **log_options(args),  # channel_map, resample: how every job reads its logs
     }
     summary = run_fleet(
         args.fleet_dir,
@@ -142,7 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"jaxlift {version('jaxlift')}")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("simulate", help="simulate a log's input and compare with the log")
-    p.add_argument("log", help="test-run log (CSV, see docs/data.md)")
+    p.add_argument("log", help="test-run log (CSV, Parquet or MDF 4; docs/data.md)")
     p.add_argument("--params", help="parameter file (JSON, docs/model.md names); default nominal")
     p.add_argument(
         "--effects",
@@ -157,7 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
         "fit",
         help="calibrate the model on logs (Levenberg-Marquardt) and report where it fails",
     )
-    p.add_argument("logs", nargs="+", help="logs to fit (CSV)")
+    p.add_argument("logs", nargs="+", help="logs to fit (CSV, Parquet or MDF 4)")
     p.add_argument("--validate", nargs="*", default=[], help="held-out logs (not fitted)")
     p.add_argument("--effects", default="", help="effects to add to the baseline (a,b)")
     p.add_argument(
@@ -178,7 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
         "diagnose",
         help="fit the baseline, test every candidate effect, name the missing one(s)",
     )
-    p.add_argument("logs", nargs="+", help="logs to fit (CSV)")
+    p.add_argument("logs", nargs="+", help="logs to fit (CSV, Parquet or MDF 4)")
     p.add_argument("--validate", nargs="*", default=[], help="held-out logs (not fitted)")
     p.add_argument(
         "--once",
@@ -224,6 +225,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_posterior_parsers(sub)  # jaxlift posterior
     add_control_parsers(sub)  # jaxlift tune, jaxlift control simulate
     for leaf in _leaf_parsers(parser):
+        if {a.dest for a in leaf._actions} & {"log", "logs", "fleet_dir"}:  # reads logs
+            add_log_options(leaf)
         leaf.add_argument(
             "--effect-file",
             action="append",
@@ -284,7 +287,7 @@ def write_provenance(args, argv, rc: int) -> None:
     if not folder.is_dir():
         return
     inputs = []
-    for key in ("log", "logs", "validate", "params", "effect_file", "gains"):
+    for key in ("log", "logs", "validate", "params", "effect_file", "gains", "channel_map"):
         value = getattr(args, key, None)
         for path in value if isinstance(value, list) else [value]:
             if path and pathlib.Path(path).is_file():

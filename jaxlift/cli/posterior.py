@@ -32,7 +32,7 @@ def cmd_posterior(args) -> int:
     from jaxlift.posterior.moves import MOVES
     from jaxlift.workflows.posterior import run_posterior
 
-    logs = read_logs(args.logs)
+    logs = read_logs(args.logs, args)
     params = None
     if args.params:
         params = jl.load_params_json(args.params, jl.all_param_infos("all"))
@@ -56,6 +56,7 @@ def cmd_posterior(args) -> int:
         sample=args.sample,
         likelihood=args.likelihood,
         sample_noise=args.sample_noise,
+        conditioning="conditional" if args.conditional else "marginal",
         n_walkers=args.walkers,
         max_steps=args.max_steps,
         seed=args.seed,
@@ -93,7 +94,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "posterior",
         help="posterior uncertainty of the bulk modulus and friction (emcee), air content",
     )
-    p.add_argument("logs", nargs="+", help="logs (CSV, see docs/data.md)")
+    p.add_argument("logs", nargs="+", help="logs (CSV, Parquet or MDF 4; docs/data.md)")
     p.add_argument("--out", required=True, help="output directory (resumes a chain in it)")
     p.add_argument(
         "--params",
@@ -110,6 +111,12 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="parameters to sample (names or sets dynamic, motor, effects); default: "
         "beta, cf_con, cf_in, cf_out, d and the effects' parameters",
+    )
+    p.add_argument(
+        "--conditional",
+        action="store_true",
+        help="hold the motor set and the initial-height offsets at their least-squares "
+        "values (default: marginalised, so that their uncertainty reaches the intervals)",
     )
     p.add_argument("--walkers", type=int, default=32, help="number of walkers (default 32)")
     p.add_argument("--max-steps", type=int, default=20_000, help="step limit (default 20000)")

@@ -40,6 +40,9 @@ DEFAULT_SETTINGS = {
     "max_effects": 2,
     "n_starts": 2,
     "seed": 0,
+    # how the logs are read (read_log, docs/data.md): channel map and resampling period
+    "channel_map": None,
+    "resample": None,
 }
 
 #: The parameters the fleet tracks: bulk modulus (air) and friction.
@@ -119,8 +122,9 @@ def run_job(job, settings: dict, job_dir: str | pathlib.Path) -> dict:
     job_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     try:
-        logs = [read_log(p) for p in job.fit]
-        val = [read_log(p) for p in job.validate]
+        how = {"channel_map": s["channel_map"], "resample": s["resample"]}
+        logs = [read_log(p, **how) for p in job.fit]
+        val = [read_log(p, **how) for p in job.validate]
         record: dict = {"vehicle": job.vehicle, "date": job.date.isoformat()}
         base = fit(logs, staged=True, n_starts=s["n_starts"], seed=s["seed"])
         if not math.isfinite(base.chi2):

@@ -23,8 +23,8 @@ import tomllib
 from importlib.metadata import version
 
 MANIFEST = "run.toml"
-#: The files a run folder's logs are (CSV or Parquet, docs/data.md).
-LOG_SUFFIXES = (".csv", ".parquet", ".pq")
+#: The files a run folder's logs are (CSV, Parquet or MDF, docs/data.md).
+LOG_SUFFIXES = (".csv", ".parquet", ".pq", ".mf4", ".mdf")
 _KEYS = {"fit", "validate"}
 
 
@@ -80,7 +80,7 @@ def _read_manifest(folder: pathlib.Path) -> tuple[tuple, tuple]:
     path = folder / MANIFEST
     if not path.exists():
         if not csvs:
-            raise FleetError(f"{folder}: no logs (*.csv, *.parquet) in this run folder")
+            raise FleetError(f"{folder}: no logs (*.csv, *.parquet, *.mf4) in this run folder")
         return tuple(csvs), ()
     try:
         spec = tomllib.loads(path.read_text(encoding="utf-8"))

@@ -2,7 +2,9 @@
 
 Format
 ------
-One test run of one vehicle is one CSV file (see ``docs/data.md``):
+One test run of one vehicle is one file (see ``docs/data.md``): CSV (below), Parquet
+(:mod:`jaxlift.model.log_parquet`) or MDF 4 (:mod:`jaxlift.model.log_mdf`), with the same
+columns and checks.  A CSV file is:
 
 * UTF-8 text (a leading byte-order mark, as some spreadsheet programs write it, is accepted),
   comma-separated, ``\\n`` or ``\\r\\n`` line ends, standard CSV quoting;
@@ -22,7 +24,10 @@ One test run of one vehicle is one CSV file (see ``docs/data.md``):
   ``load_kg``      yes       mass on the forks [kg], >= 0; may change within a run (a pallet
                              picked up)
   ``speed_mps``    no        fork speed as logged by the vehicle [m/s], any finite value
-  ``pressure_pa``  no        line pressure [Pa], absolute, >= 0
+  ``pressure_pa``  no        line pressure [Pa], **gauge** (above atmosphere, as hydraulic
+                             transducers report it; the model's ``p`` is gauge too), at least
+                             -101325 Pa (vacuum); slightly negative values are a transducer's
+                             noise near atmospheric pressure
   ===============  ========  ====================================================================
 
 * the columns may come in any order; names are case-sensitive, surrounding spaces are ignored;
@@ -40,6 +45,11 @@ Nothing is dropped, repaired or guessed.  When a file has several problems, the 
 earliest line is reported.  A :class:`Log` built in code is checked the same way; there the
 "line" of sample ``i`` is ``i + 2`` (where it would be in a written file) and the message also
 gives the array index.
+
+Two options of :func:`read_log` apply to every format: a channel map, for files whose
+columns (channels) are named otherwise (:func:`~jaxlift.model.log_validation.channel_sources`),
+and resampling of jittered time stamps onto a uniform clock, only when asked
+(:mod:`jaxlift.model.log_resample`).
 """
 
 import codecs
@@ -48,22 +58,28 @@ import dataclasses
 import io
 import os
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
+from .log_mdf import MDF_SUFFIXES, read_mdf_columns
 from .log_parquet import PARQUET_SUFFIXES, read_parquet_columns
+from .log_resample import resample_columns, resample_period
 from .log_validation import (
+    JITTER,
     KNOWN_COLUMNS,
     MIN_SAMPLES,
     NON_FINITE,
     NOT_DECIMAL_CHAR,
     NUMBER,
     REQUIRED_COLUMNS,
+    RESAMPLE_JITTER,
     LogError,
     UnusedColumnsWarning,
+    channel_sources,
     check_extra,
+    find_columns,
     validate_arrays,
 )
 
@@ -73,7 +89,7 @@ from .log_validation import (
 
 @dataclasses.dataclass(frozen=True, eq=False, repr=False)
 class Log:
-    """One test run: samples of the lift, as read from a CSV log (see the module docstring).
+    """One test run: samples of the lift, as read from a log file (see the module docstring).
 
     All arrays are read-only float64 copies of shape ``(n,)``; building a ``Log`` checks them
     like :func:`read_log` checks a file (raising :class:`LogError`).
@@ -84,7 +100,7 @@ class Log:
     height_m: np.ndarray  # fork height [m]
     load_kg: np.ndarray  # mass on the forks [kg]
     speed_mps: np.ndarray | None = None  # logged fork speed [m/s]
-    pressure_pa: np.ndarray | None = None  # absolute line pressure [Pa]
+    pressure_pa: np.ndarray | None = None  # gauge line pressure [Pa] (above atmosphere)
     extra: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # unused columns
     name: str = "log"  # stem of the file name, for reports
     path: str | None = None
@@ -162,22 +178,83 @@ def _parse_extra(tokens: Sequence[str]) -> np.ndarray:
     return np.array(values, dtype=np.float64)
 
 
-def read_log(path: str | os.PathLike[str]) -> Log:
-    """Read and check one log file (format: see the module docstring). A file ending in
-    ``.parquet`` or ``.pq`` is read as Parquet: the same columns and checks, typed
-    columns (:mod:`jaxlift.model.log_parquet`).
+def read_log(
+    path: str | os.PathLike[str],
+    *,
+    channel_map: Mapping[str, str] | None = None,
+    resample: float | None = None,
+) -> Log:
+    """Read and check one log file (format: see the module docstring and ``docs/data.md``).
 
-    Returns a :class:`Log` named after the file's stem.  Raises :class:`LogError` for anything
-    that is not a valid log, and warns once (:class:`UnusedColumnsWarning`) about columns that
-    are kept but not used.
+    The format follows the file name's ending: ``.parquet`` or ``.pq`` is Parquet (typed
+    columns, :mod:`jaxlift.model.log_parquet`), ``.mf4`` or ``.mdf`` is ASAM MDF (channels,
+    :mod:`jaxlift.model.log_mdf`), anything else CSV.  Every format has the same columns,
+    units and checks.
+
+    Parameters
+    ----------
+    path
+        The log file.
+    channel_map
+        Log column -> name of the column or channel in the file, for the columns a logger
+        names otherwise, e.g. ``{"height_m": "WireSensor", "pwm": "ValveDuty"}``.  Columns
+        not named keep their own name (``time_s``, ``pwm``, ``height_m``, ``load_kg``,
+        ``speed_mps``, ``pressure_pa``); in an MDF file without a ``time_s`` channel the
+        time is the master channel.  Values must still be in the columns' SI units.  A
+        mapped optional column that the file lacks is simply absent.
+    resample
+        Sample period [s] to resample onto, or ``None`` (default) to take the samples as
+        logged, where a time step more than 1 % off the sample period is an error.  With a
+        period, time steps may be up to 50 % off (a longer step is still a gap, an error);
+        the samples are carried onto ``t0 + k * resample``: height, speed and pressure by
+        linear interpolation (continuous physical signals), pwm and load by zero-order
+        hold, the last value logged (a command and a mass, piecewise constant: a value
+        between two logged ones was never commanded nor on the forks); see
+        :mod:`jaxlift.model.log_resample`.
+
+    Returns
+    -------
+    Log
+        Named after the file's stem; its columns under their log names.
+
+    Raises
+    ------
+    LogError
+        For anything that is not a valid log, naming the file, the line or sample, and the
+        column (and the channel, where the file names it otherwise).
+    ValueError
+        For a ``channel_map`` that is not one, or a ``resample`` period that is not > 0.
+
+    Warns
+    -----
+    UnusedColumnsWarning
+        Once, naming the columns (channels) that are kept in :attr:`Log.extra` but not used.
     """
     p = os.fsdecode(path)
     name = Path(p).stem
-    if Path(p).suffix.lower() in PARQUET_SUFFIXES:
-        arrays, extra = read_parquet_columns(p, name)
-        _warn_unused(p, extra)
-        return Log(**arrays, extra=extra, name=name, path=p)
+    sources = channel_sources(channel_map)
+    dt = None if resample is None else resample_period(resample)
+    jitter = JITTER if dt is None else RESAMPLE_JITTER
+    suffix = Path(p).suffix.lower()
+    not_kept: list[str] = []
+    if suffix in PARQUET_SUFFIXES:
+        arrays, extra = read_parquet_columns(p, name, sources, jitter=jitter)
+    elif suffix in MDF_SUFFIXES:
+        arrays, extra, not_kept = read_mdf_columns(
+            p, name, sources, mapped=tuple(channel_map or ()), jitter=jitter
+        )
+    else:
+        arrays, extra = _read_csv_columns(p, name, sources, jitter=jitter)
+    if dt is not None:
+        arrays, extra = resample_columns(arrays, extra, dt, path=p, name=name)
+    _warn_unused(p, extra, not_kept)
+    return Log(**arrays, extra=extra, name=name, path=p)
 
+
+def _read_csv_columns(
+    p: str, name: str, sources: Mapping[str, str], *, jitter: float
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The checked known columns and the extra columns of the CSV log at ``p``."""
     try:
         with open(p, "rb") as f:
             data = f.read()
@@ -242,15 +319,8 @@ def read_log(path: str | os.PathLike[str]) -> Log:
                 got=f"{c!r} in fields {first_field[c] + 1} and {j + 1}",
             )
         first_field[c] = j
-    for c in REQUIRED_COLUMNS:
-        if c not in first_field:
-            raise LogError(
-                f"a column named {c!r} (required: {required})",
-                path=p,
-                row=1,
-                column=c,
-                got="columns " + ", ".join(repr(x) for x in names),
-            )
+    found = find_columns(names, sources, path=p, row=1)
+    column_of = {src: c for c, src in found.items()}  # name in the file -> log column
 
     body, lines = rows[1:], starts[1:]
     while body and not body[-1]:  # blank lines at the end of the file
@@ -273,21 +343,28 @@ def read_log(path: str | os.PathLike[str]) -> Log:
         )
 
     fields = list(zip(*body, strict=True))
-    raw = {c: fields[j] for c, j in first_field.items() if c in KNOWN_COLUMNS}
+    raw = {column_of[x]: fields[j] for x, j in first_field.items() if x in column_of}
     known = {c: _parse_numbers(tokens) for c, tokens in raw.items()}
-    arrays = validate_arrays(known, path=p, name=name, lines=lines, raw=raw)
-    extra = {c: _parse_extra(fields[j]) for c, j in first_field.items() if c not in KNOWN_COLUMNS}
-    _warn_unused(p, extra)
-    return Log(**arrays, extra=extra, name=name, path=p)
+    channels = {c: src for c, src in found.items() if src != c}
+    arrays = validate_arrays(
+        known, path=p, name=name, lines=lines, raw=raw, channels=channels, jitter=jitter
+    )
+    extra = {x: _parse_extra(fields[j]) for x, j in first_field.items() if x not in column_of}
+    return arrays, extra
 
 
-def _warn_unused(p: str, extra: dict) -> None:
+def _warn_unused(p: str, extra: dict, not_kept: Sequence[str] = ()) -> None:
+    """One UnusedColumnsWarning, pointing at the caller of :func:`read_log`."""
+    parts = []
     if extra:
-        warnings.warn(
-            f"{p}: column(s) {', '.join(repr(c) for c in extra)} not used (kept in Log.extra)",
-            UnusedColumnsWarning,
-            stacklevel=3,
+        parts.append(f"column(s) {', '.join(repr(c) for c in extra)} not used (kept in Log.extra)")
+    if not_kept:
+        parts.append(
+            f"channel(s) {', '.join(repr(c) for c in not_kept)} not used and not kept (recorded "
+            "on another clock, or neither numbers nor text)"
         )
+    if parts:
+        warnings.warn(f"{p}: {'; '.join(parts)}", UnusedColumnsWarning, stacklevel=3)
 
 
 def write_log(path: str | os.PathLike[str], log: Log, *, float_format: str = "%.9g") -> None:

@@ -8,15 +8,18 @@ column and the row: a row is reported as the line it would be on in the CSV file
 index + 2, the header being line 1), with its 0-based index.
 """
 
+from collections.abc import Mapping
+
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
 from .log_validation import (
+    JITTER,
     KNOWN_COLUMNS,
     MIN_SAMPLES,
-    REQUIRED_COLUMNS,
     LogError,
+    find_columns,
     validate_arrays,
 )
 
@@ -28,10 +31,16 @@ def _numeric(t: pa.DataType) -> bool:
     return pa.types.is_integer(t) or pa.types.is_floating(t)
 
 
-def read_parquet_columns(p: str, name: str) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+def read_parquet_columns(
+    p: str, name: str, sources: Mapping[str, str] | None = None, *, jitter: float = JITTER
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """The checked known columns and the extra columns of the Parquet log at ``p``
-    (:func:`jaxlift.read_log` builds the :class:`~jaxlift.Log` from them). Raises
+    (:func:`jaxlift.read_log` builds the :class:`~jaxlift.Log` from them): the known
+    columns found under their names in ``sources`` (log column -> column name in the file,
+    :func:`~jaxlift.model.log_validation.channel_sources`; default: their own names),
+    their time steps checked with the relative tolerance ``jitter``. Raises
     :class:`~jaxlift.LogError` for anything that is not a valid log."""
+    sources = {c: c for c in KNOWN_COLUMNS} if sources is None else sources
     try:
         table = pq.read_table(p)
     except FileNotFoundError as e:
@@ -42,30 +51,26 @@ def read_parquet_columns(p: str, name: str) -> tuple[dict[str, np.ndarray], dict
     if len(set(names)) != len(names):
         dup = sorted({c for c in names if names.count(c) > 1})
         raise LogError("unique column names", path=p, column=dup[0], got=f"{dup} repeated")
-    required = ", ".join(REQUIRED_COLUMNS)
-    for c in REQUIRED_COLUMNS:
-        if c not in names:
-            raise LogError(f"a column named {c!r} (required: {required})", path=p, column=c,
-                           got="columns " + ", ".join(repr(x) for x in names))  # fmt: skip
+    found = find_columns(names, sources, path=p)
+    channels = {c: src for c, src in found.items() if src != c}
     if table.num_rows < MIN_SAMPLES:
         raise LogError(f"at least {MIN_SAMPLES} rows", path=p, got=f"{table.num_rows}")
     known = {}
-    for c in names:
-        if c not in KNOWN_COLUMNS:
-            continue
-        col = table.column(c)
+    for c, src in found.items():
+        col = table.column(src)
+        where = dict(path=p, column=c, channel=channels.get(c))
         if not _numeric(col.type):
-            raise LogError("a numeric column (integer or floating point)", path=p, column=c,
-                           got=f"type {col.type}")  # fmt: skip
+            raise LogError("a numeric column (integer or floating point)",
+                           got=f"type {col.type}", **where)  # fmt: skip
         if col.null_count:
             i = int(np.flatnonzero(np.asarray(col.is_null()))[0])
-            raise LogError("a number", path=p, row=i + 2, index=i, column=c,
-                           got="a missing value (null)")  # fmt: skip
+            raise LogError("a number", row=i + 2, index=i, got="a missing value (null)", **where)
         known[c] = col.to_numpy().astype(np.float64)
-    arrays = validate_arrays(known, path=p, name=name)
+    arrays = validate_arrays(known, path=p, name=name, channels=channels, jitter=jitter)
+    used = set(found.values())
     extra = {}
     for c in names:
-        if c in KNOWN_COLUMNS:
+        if c in used:
             continue
         col = table.column(c)
         if _numeric(col.type) and not col.null_count:

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .constants import MAST_HEIGHT_M
+from .constants import MAST_HEIGHT_M, P_ATM
 
 REQUIRED_COLUMNS: tuple[str, ...] = ("time_s", "pwm", "height_m", "load_kg")
 OPTIONAL_COLUMNS: tuple[str, ...] = ("speed_mps", "pressure_pa")
@@ -17,8 +17,14 @@ KNOWN_COLUMNS: tuple[str, ...] = REQUIRED_COLUMNS + OPTIONAL_COLUMNS
 
 MIN_SAMPLES = 2  # fewer gives no sample period
 JITTER = 0.01  # tolerated deviation of a time step from the sample period, relative
+#: Tolerated deviation before resampling (``read_log(..., resample=dt)``): a step more
+#: than 1.5 periods long is a missing sample (a gap), still an error.
+RESAMPLE_JITTER = 0.5
 HEIGHT_MIN_M = -0.01  # sensor noise at the bottom of the mast
 HEIGHT_MAX_M = 4.6  # the mast is 4.5 m high; a little margin for the sensor
+#: Lowest gauge pressure [Pa] a log may hold: vacuum, 1 atm below atmosphere. A gauge
+#: transducer reads a little below 0 at rest (noise); below -1 atm is impossible.
+PRESSURE_MIN_PA = -P_ATM
 
 
 NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
@@ -43,9 +49,14 @@ class LogError(ValueError):
     got : str | None
         What was found instead, in words.
     index : int | None
-        0-based array index of the sample, given for logs checked in memory.
+        0-based array index of the sample, given for logs checked in memory and for files
+        whose samples have no lines (MDF: then ``row`` is ``None``).
     name : str | None
         Name of the log, used in the message when there is no path.
+    channel : str | None
+        The name of the channel (or column) in the file that holds ``column``, where it
+        differs from ``column`` (a channel map) or the file has channels (MDF).  The
+        message then names the channel.
     """
 
     def __init__(
@@ -57,6 +68,7 @@ class LogError(ValueError):
         got: str | None = None,
         index: int | None = None,
         name: str | None = None,
+        channel: str | None = None,
     ) -> None:
         self.expected = expected
         self.path = path
@@ -65,6 +77,7 @@ class LogError(ValueError):
         self.got = got
         self.index = index
         self.name = name
+        self.channel = channel
         super().__init__(self._message())
 
     def _message(self) -> str:
@@ -77,7 +90,14 @@ class LogError(ValueError):
             if self.index is not None:
                 line += f" (array index {self.index})"
             where.append(line)
-        if self.column is not None:
+        elif self.index is not None:  # samples without lines (MDF channels)
+            where.append(f"sample index {self.index}")
+        if self.channel is not None:
+            mapped = self.column is not None and self.column != self.channel
+            where.append(
+                f"channel {self.channel!r}" + (f" (log column {self.column!r})" if mapped else "")
+            )
+        elif self.column is not None:
             where.append(f"column {self.column!r}")
         msg = f"{', '.join(where)}: expected {self.expected}"
         if self.got is not None:
@@ -85,7 +105,8 @@ class LogError(ValueError):
         return msg
 
     def __reduce__(self) -> tuple[Any, ...]:
-        args = (self.expected, self.path, self.row, self.column, self.got, self.index, self.name)
+        args = (self.expected, self.path, self.row, self.column, self.got, self.index, self.name,
+                self.channel)  # fmt: skip
         return (type(self), args)
 
 
@@ -105,25 +126,20 @@ def first_index(mask: np.ndarray) -> int | None:
     return i if mask[i] else None
 
 
-def _as_column(value: Any, column: str, *, path: str | None, name: str | None) -> np.ndarray:
+def _as_column(
+    value: Any, column: str, *, path: str | None, name: str | None, channel: str | None = None
+) -> np.ndarray:
     """``value`` as a fresh read-only 1-D float64 array, or LogError."""
+    where = dict(path=path, column=column, name=name, channel=channel)
     try:
         arr = np.asarray(value)
     except (TypeError, ValueError) as e:  # ragged nested sequences and the like
-        raise LogError(
-            "a 1-D array of numbers", path=path, column=column, got=str(e), name=name
-        ) from None
+        raise LogError("a 1-D array of numbers", got=str(e), **where) from None
     if arr.dtype.kind not in "biuf":
         got = "None" if value is None else f"an array of dtype {arr.dtype}"
-        raise LogError("a 1-D array of numbers", path=path, column=column, got=got, name=name)
+        raise LogError("a 1-D array of numbers", got=got, **where)
     if arr.ndim != 1:
-        raise LogError(
-            "a 1-D array of numbers",
-            path=path,
-            column=column,
-            got=f"an array of shape {arr.shape}",
-            name=name,
-        )
+        raise LogError("a 1-D array of numbers", got=f"an array of shape {arr.shape}", **where)
     out = np.array(arr, dtype=np.float64)  # always a copy
     out.setflags(write=False)
     return out
@@ -136,6 +152,9 @@ def validate_arrays(
     name: str | None = "log",
     lines: Sequence[int] | np.ndarray | None = None,
     raw: Mapping[str, Sequence[str]] | None = None,
+    rows: bool = True,
+    channels: Mapping[str, str] | None = None,
+    jitter: float = JITTER,
 ) -> dict[str, np.ndarray]:
     """Check the known columns of a log; return them as read-only float64 arrays.
 
@@ -154,6 +173,15 @@ def validate_arrays(
     raw
         Original text of each value (from :func:`read_log`), only to word the message about a
         value that is not a number (it was parsed to NaN).
+    rows
+        ``False`` for samples that have no lines (MDF channels): errors then give the 0-based
+        sample index only (``LogError.row`` is ``None``).
+    channels
+        Column -> name of its channel in the file, for the messages (``LogError.channel``);
+        columns not in it are named as columns.
+    jitter
+        Tolerated deviation of a time step from the median step, relative: :data:`JITTER`,
+        or :data:`RESAMPLE_JITTER` for samples that are resampled afterwards.
 
     Raises
     ------
@@ -161,6 +189,7 @@ def validate_arrays(
         For the first problem: shape problems first, then the one on the earliest line (ties
         go to the column that comes first in :data:`KNOWN_COLUMNS`).
     """
+    channels = {} if channels is None else channels
     for c in columns:
         if c not in KNOWN_COLUMNS:
             raise LogError(
@@ -175,11 +204,10 @@ def validate_arrays(
         value = columns.get(c)
         if value is None:
             if c in REQUIRED_COLUMNS:
-                raise LogError(
-                    f"the required column {c!r}", path=path, column=c, got="none", name=name
-                )
+                raise LogError(f"the required column {c!r}", path=path, column=c, got="none",
+                               name=name, channel=channels.get(c))  # fmt: skip
             continue
-        arrays[c] = _as_column(value, c, path=path, name=name)
+        arrays[c] = _as_column(value, c, path=path, name=name, channel=channels.get(c))
 
     n = arrays["time_s"].shape[0]
     for c, a in arrays.items():
@@ -190,6 +218,7 @@ def validate_arrays(
                 column=c,
                 got=f"{a.shape[0]}",
                 name=name,
+                channel=channels.get(c),
             )
     if n < MIN_SAMPLES:
         row = None
@@ -204,6 +233,9 @@ def validate_arrays(
     if line_of.shape != (n,):
         raise ValueError(f"lines has shape {line_of.shape}, expected ({n},)")
 
+    def at(i: int) -> str:
+        return f"line {int(line_of[i])}" if rows else f"sample index {i}"
+
     # Candidates (line, column rank, error); the earliest line wins.
     found: list[tuple[int, int, LogError]] = []
 
@@ -213,11 +245,12 @@ def validate_arrays(
         err = LogError(
             expected,
             path=path,
-            row=int(line_of[i]),
+            row=int(line_of[i]) if rows else None,
             column=column,
             got=got,
-            index=i if in_memory else None,
+            index=i if in_memory or not rows else None,
             name=name,
+            channel=channels.get(column),
         )
         found.append((int(line_of[i]), KNOWN_COLUMNS.index(column), err))
 
@@ -261,11 +294,12 @@ def validate_arrays(
 
         if "pressure_pa" in arrays:
             p = arrays["pressure_pa"]
-            i = first_index(p < 0.0)
+            i = first_index(p < PRESSURE_MIN_PA)
             add(
                 i,
                 "pressure_pa",
-                "an absolute pressure of at least 0 Pa",
+                f"a gauge pressure of at least {PRESSURE_MIN_PA:.0f} Pa (1 atm below "
+                "atmosphere is vacuum)",
                 "" if i is None else f"{fmt_value(p[i])} Pa",
             )
 
@@ -273,7 +307,7 @@ def validate_arrays(
         dt = np.diff(t)  # dt[k] is the step that ends at sample k + 1
         k = first_index(dt <= 0.0)
         if k is not None:
-            prev = f"{fmt_value(t[k])} s on line {int(line_of[k])}"
+            prev = f"{fmt_value(t[k])} s at {at(k)}"
             if dt[k] == 0.0:
                 got = f"{fmt_value(t[k + 1])} s again (a repeated sample)"
             else:
@@ -285,9 +319,9 @@ def validate_arrays(
             period = float(np.median(dt[ok]))
             expected = (
                 f"a time step of {period:.6g} s, the median sample period "
-                f"(uniform sampling, jitter under {JITTER:.0%} tolerated)"
+                f"(uniform sampling, jitter under {jitter:.0%} tolerated)"
             )
-            k = first_index(ok & (dt > period * (1.0 + JITTER)))
+            k = first_index(ok & (dt > period * (1.0 + jitter)))
             if k is not None:
                 missing = round(float(dt[k]) / period) - 1
                 what = (
@@ -295,11 +329,11 @@ def validate_arrays(
                     if missing >= 1
                     else "a late sample"
                 )
-                got = f"a step of {dt[k]:.6g} s from line {int(line_of[k])} ({what})"
+                got = f"a step of {dt[k]:.6g} s from {at(k)} ({what})"
                 add(k + 1, "time_s", expected, got)
-            k = first_index(ok & (dt < period * (1.0 - JITTER)))
+            k = first_index(ok & (dt < period * (1.0 - jitter)))
             if k is not None:
-                got = f"a step of {dt[k]:.6g} s from line {int(line_of[k])} (irregular sampling)"
+                got = f"a step of {dt[k]:.6g} s from {at(k)} (irregular sampling)"
                 add(k + 1, "time_s", expected, got)
 
     if found:
@@ -345,3 +379,92 @@ def check_extra(extra: Any, n: int, *, path: str | None, name: str | None) -> di
         arr.setflags(write=False)
         out[c] = arr
     return out
+
+
+def channel_sources(channel_map: Mapping[str, str] | None) -> dict[str, str]:
+    """Log column -> name of the column (CSV, Parquet) or channel (MDF) that holds it in a
+    file: the column's own name, unless ``channel_map`` names another.
+
+    Parameters
+    ----------
+    channel_map
+        Log column (``time_s``, ``pwm``, ``height_m``, ``load_kg``, ``speed_mps``,
+        ``pressure_pa``) -> name in the file, for the columns a logger names otherwise;
+        ``None`` or ``{}``: every column under its own name.
+
+    Raises
+    ------
+    ValueError
+        For a key that is not a log column, a name that is not a non-empty string, or one
+        name given to two columns.
+    """
+    if channel_map is None:
+        channel_map = {}
+    if not isinstance(channel_map, Mapping):
+        raise ValueError(
+            f"channel_map: expected a mapping log column -> channel name, got "
+            f"{type(channel_map).__name__}"
+        )
+    for c, src in channel_map.items():
+        if c not in KNOWN_COLUMNS:
+            raise ValueError(
+                f"channel_map: {c!r} is not a log column (expected one of "
+                f"{', '.join(KNOWN_COLUMNS)})"
+            )
+        if not isinstance(src, str) or not src.strip():
+            raise ValueError(f"channel_map: expected a channel name for {c}, got {src!r}")
+    sources = {c: channel_map.get(c, c).strip() for c in KNOWN_COLUMNS}
+    seen: dict[str, str] = {}
+    for c, src in sources.items():
+        if src in seen:
+            raise ValueError(
+                f"channel_map: the channel {src!r} would be read as both {seen[src]} and {c} "
+                "(map one of them to another channel)"
+            )
+        seen[src] = c
+    return sources
+
+
+def find_columns(
+    names: Sequence[str],
+    sources: Mapping[str, str],
+    *,
+    path: str | None,
+    row: int | None = None,
+    kind: str = "column",
+    required: Sequence[str] = REQUIRED_COLUMNS,
+    note: str | None = None,
+) -> dict[str, str]:
+    """Log column -> its name in the file, for the known columns whose name (``sources``,
+    :func:`channel_sources`) is among the file's column or channel ``names``.
+
+    Raises :class:`LogError` (at line ``row``, naming the ``kind``: ``"column"`` or
+    ``"channel"``) for a missing required column, and for a column named like a known one
+    that the channel map reads from another name (it would be neither used nor kept).
+    """
+    present = set(names)
+    found: dict[str, str] = {}
+    for c in KNOWN_COLUMNS:
+        src = sources[c]
+        if src in present:
+            found[c] = src
+        elif c in required:
+            expected = f"a {kind} named {src!r}"
+            if src != c:
+                expected += f" (the channel map's {c})"
+            expected += f" (required: {', '.join(required)}"
+            expected += f"; {note})" if note else ")"
+            shown = ", ".join(repr(x) for x in names[:30]) + (", ..." if len(names) > 30 else "")
+            raise LogError(
+                expected, path=path, row=row, column=c, got=f"{kind}s {shown}" if shown else "none",
+                channel=src if src != c or kind == "channel" else None,
+            )  # fmt: skip
+    used = set(found.values())
+    for x in names:
+        if x in KNOWN_COLUMNS and x not in used:
+            raise LogError(
+                f"no {kind} named {x!r}: the channel map reads {x} from {sources[x]!r}, and "
+                f"{x!r} would be neither used nor kept", path=path, row=row, column=x,
+                got=f"a {kind} {x!r} as well",
+            )  # fmt: skip
+    return found
