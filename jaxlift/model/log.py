@@ -80,6 +80,7 @@ from .log_validation import (
     channel_sources,
     check_extra,
     find_columns,
+    read_bytes,
     validate_arrays,
 )
 
@@ -255,13 +256,7 @@ def _read_csv_columns(
     p: str, name: str, sources: Mapping[str, str], *, jitter: float
 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """The checked known columns and the extra columns of the CSV log at ``p``."""
-    try:
-        with open(p, "rb") as f:
-            data = f.read()
-    except OSError as e:
-        raise LogError(
-            "a readable log file", path=p, got=f"{type(e).__name__}: {e.strerror or e}"
-        ) from None
+    data = read_bytes(p)
 
     skip = len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0
     try:

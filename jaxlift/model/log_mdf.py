@@ -37,6 +37,7 @@ from .log_validation import (
     REQUIRED_COLUMNS,
     LogError,
     find_columns,
+    read_bytes,
     validate_arrays,
 )
 
@@ -71,13 +72,7 @@ def _describe(exc: Exception) -> str:
 
 
 def _open(p: str) -> MDF:
-    try:
-        with open(p, "rb") as f:
-            data = f.read()
-    except OSError as e:
-        raise LogError(
-            "a readable log file", path=p, got=f"{type(e).__name__}: {e.strerror or e}"
-        ) from None
+    data = read_bytes(p)
     if not data:
         raise LogError("an MDF file (ASAM MDF 4 or 3)", path=p, got="an empty file")
     try:

@@ -114,6 +114,18 @@ class UnusedColumnsWarning(UserWarning):
     """A log has columns that jaxlift does not use; they are kept in :attr:`Log.extra`."""
 
 
+def read_bytes(p: str) -> bytes:
+    """The bytes of the log file at ``p``; a :class:`LogError` naming it if it cannot
+    be read (CSV and MDF logs alike)."""
+    try:
+        with open(p, "rb") as f:
+            return f.read()
+    except OSError as e:
+        raise LogError(
+            "a readable log file", path=p, got=f"{type(e).__name__}: {e.strerror or e}"
+        ) from None
+
+
 def fmt_value(x: float) -> str:
     return f"{x:.9g}"
 
