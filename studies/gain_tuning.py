@@ -48,7 +48,7 @@ import numpy as np  # noqa: E402
 import jaxlift as jl  # noqa: E402
 from jaxlift.control.closed_loop import simulate_closed_loop  # noqa: E402
 from jaxlift.control.controller import PID, THESIS_PID, save_gains  # noqa: E402
-from jaxlift.control.cost import tuning_cost  # noqa: E402
+from jaxlift.control.cost import tuning_cost, tuning_runs  # noqa: E402
 from jaxlift.control.draws import batch_models, evaluate_draws, parameter_draws  # noqa: E402
 from jaxlift.control.performance import figures  # noqa: E402
 from jaxlift.control.reference import thesis_reference  # noqa: E402
@@ -64,6 +64,10 @@ OUT = pathlib.Path(os.environ.get("JAXLIFT_NOTEBOOK_OUT", ROOT / "runs" / "gain_
 TIME_SCALE = 0.15 if SMALL else 1.0
 STEPS = 4 if SMALL else 30
 N_TUNE, N_EVAL = (3, 6) if SMALL else (16, 100)
+# the loop as deployed (docs/control.md): the controller every 10 ms with the duty
+# held, the speed sensor's noise; the cost is the mean over these noise seeds
+DEPLOYED = dict(sampled=True, T_c=0.01)
+SEEDS = [0, 1] if SMALL else [0, 1, 2, 3]
 
 # %% [markdown]
 # ## The calibrated model
@@ -100,21 +104,26 @@ start = thesis.with_gains({"K_aw": THESIS_PID["I"] / THESIS_PID["P"]})
 
 
 def nominal_cost(ctrl):
+    """The tuning cost as deployed: mean over the loads and the noise seeds."""
     costs = []
     for ref in refs:
-        sol = simulate_closed_loop(plant, effects, ctrl, ref)
-        costs.append(float(tuning_cost(ctrl, plant, sol)) if bool(sol.ok) else np.inf)
+        for seed in SEEDS:
+            sol = simulate_closed_loop(plant, effects, ctrl, ref, noise_seed=seed, **DEPLOYED)
+            costs.append(float(tuning_cost(ctrl, plant, sol)) if bool(sol.ok) else np.inf)
     return float(np.mean(costs))
 
 
-print(f"thesis PID: cost {nominal_cost(thesis):.4g}")
-sol = simulate_closed_loop(plant, effects, thesis, refs[0]).check()
+print(f"thesis PID: cost {nominal_cost(thesis):.4g} (sampled, with noise)")
+sol = simulate_closed_loop(plant, effects, thesis, refs[0], noise_seed=0, **DEPLOYED)
 for k, v in figures(sol).as_dict().items():
     print(f"  {k:22s} {v:9.4g}")
 
 # %% [markdown]
 # ## Nominal tuning
-# Levenberg--Marquardt on `log P, log I, log D, log N, log K_aw`. The cost of
+# Levenberg--Marquardt on `log P, log I, log D, log N, log K_aw`, on the loop as
+# deployed (sampled every 10 ms, the sensor's noise averaged over the seeds; the
+# thesis gains are unstable on that clock, so tuning starts from the stable scaled
+# version with the lowest cost, and says so). The cost of
 # docs/control.md's figures is a sum of squares (each figure is an RMS or a mean), so it is
 # written as a residual vector (`tuning_residuals`: error samples, band-passed error,
 # duty rate, offsets, noise amplification); each evaluation is one simulation with the
@@ -124,9 +133,10 @@ for k, v in figures(sol).as_dict().items():
 # the same cost and gradient stalled (benchmarks/results_tune.txt).
 
 # %%
-nominal = tune_gains(start, plant, effects, refs, steps=STEPS)
+nominal = tune_gains(start, plant, effects, refs, steps=STEPS, noise_seeds=SEEDS, **DEPLOYED)
 print(f"nominal tuning: cost {nominal.initial_cost:.4g} -> {nominal.best_cost:.4g} "
       f"in {nominal.wall_s:.0f} s")  # fmt: skip
+print("start:", nominal.start_note or "the starting gains")
 print("tuned gains:", {k: round(v, 3) for k, v in nominal.controller.gain_values().items()})
 print(f"tuned cost {nominal_cost(nominal.controller):.4g} < thesis {nominal_cost(thesis):.4g}")
 
@@ -151,7 +161,7 @@ tune_set, held_out = draws.split(N_TUNE)
 plants, effs = batch_models(plant, effects, tune_set.draws)
 robust = tune_multistart(
     [nominal.controller, start], plants, effs, refs, batched_plants=True, robust=True,
-    steps=STEPS,
+    steps=STEPS, noise_seeds=SEEDS[:1], **DEPLOYED,
 )  # fmt: skip
 print(f"robust tuning: objective {robust.best_cost:.4g} ({robust.message}), "
       f"{robust.wall_s:.0f} s")  # fmt: skip
@@ -163,7 +173,8 @@ for name, ctrl in (
     ("nominal", nominal.controller),
     ("robust", robust.controller),
 ):  # noqa: E501
-    c, ok, fig = evaluate_draws(ctrl, hp, he, refs[0])
+    noise = tuning_runs([refs[0]], [0], len(held_out.draws))[1]  # a realisation per draw
+    c, ok, fig = evaluate_draws(ctrl, hp, he, refs[0], noise_seeds=noise, **DEPLOYED)
     table.append(dict(gains=name, median=float(np.median(c)), worst=float(c.max()),
                       failed=int((~ok).sum())))  # fmt: skip
     print(f"{name:8s} held-out cost: median {np.median(c):.4g}, worst {c.max():.4g}, "
@@ -176,7 +187,7 @@ for name, ctrl in (
 # describing gain under the sensor noise.
 
 # %%
-rows = stability_table(plant, effects, robust.controller, 1000.0, noise=True)
+rows = stability_table(plant, effects, robust.controller, 1000.0, noise=True, sampled=True)
 worst = max(rows, key=lambda r: r["max_real_per_s"])
 print(f"robust gains, with noise: {sum(r['stable'] for r in rows)}/{len(rows)} points stable;"
       f" worst max real part {worst['max_real_per_s']:.3g} 1/s at {worst['point']}")  # fmt: skip
@@ -189,7 +200,7 @@ save_gains(OUT / "gains.json", robust.controller, comment="robust-tuned (noteboo
 rep = Report("Gain tuning (notebook)")
 rep.text(f"Model `{FIT / 'params.json'}`; draws: {draws.source}.")
 rep.table(table, caption="Cost over held-out draws")
-runs = [(n, simulate_closed_loop(plant, effects, c, refs[0]))
+runs = [(n, simulate_closed_loop(plant, effects, c, refs[0], noise_seed=0, **DEPLOYED))
         for n, c in (("thesis", thesis), ("robust", robust.controller))]  # fmt: skip
 rep.figure(plot_response(runs, OUT / "figures" / "response.png"), "Response, 500 kg")
 md, html = rep.write(OUT)
