@@ -335,3 +335,19 @@ def test_cli_end_to_end(logs, tmp_path, capsys):
     assert draws[0]["k1"] == pytest.approx(json.loads((out / "params.json").read_text())["k1"])
     assert len({d["beta"] for d in draws}) > 1
     assert posterior_draws(out, 5, seed=1) == (effects, draws)
+
+
+def test_pair_plot_of_eight_parameters(tmp_path):
+    """The dynamic set with two effects is 8 sampled parameters: ArviZ's pair plot then
+    has 64 panels, over its default limit of 40, and `jaxlift posterior` ended in that
+    error (exit 2) after a converged chain, without its report. Now it draws."""
+    import xarray as xr
+
+    from jaxlift.report.posterior import _az_fig
+
+    rng = np.random.default_rng(0)
+    names = [f"p{i}" for i in range(8)]
+    post = xr.Dataset({n: (("chain", "draw"), rng.normal(size=(2, 30))) for n in names})
+    dt = xr.DataTree.from_dict({"posterior": post})
+    path = _az_fig("plot_pair", dt, names, tmp_path / "pair.png")
+    assert (tmp_path / "pair.png").stat().st_size > 10_000, path

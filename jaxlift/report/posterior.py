@@ -335,9 +335,15 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
 
 
 def _az_fig(fn_name, dt, names, path):
+    """An ArviZ figure of ``names`` saved to ``path``. ArviZ refuses more than
+    ``plot.max_subplots`` (40) panels; a pair plot of 7 or more parameters (e.g. the
+    dynamic set with two effects: 8 x 8 = 64) needs more, and the whole posterior run
+    ended in that error after sampling. The limit is raised for this figure alone."""
+    n_panels = max(len(names) ** 2, 40)
 
     def make():
-        pc = getattr(az, fn_name)(dt, var_names=list(names), backend="matplotlib")
+        with az.rc_context({"plot.max_subplots": n_panels}):
+            pc = getattr(az, fn_name)(dt, var_names=list(names), backend="matplotlib")
         pc.savefig(path, dpi=80)
 
     with_pyplot_figures(make)
