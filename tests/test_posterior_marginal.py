@@ -115,3 +115,32 @@ def test_log_prob_curvature_is_the_marginal_information(problems):
             expected = 0.5 * info[k, k] * h**2
             assert drops[c] == pytest.approx(expected, rel=0.25), (drops[c], expected)
     assert drops["conditional"] > 1.2 * drops["marginal"], drops
+
+
+def test_draws_carry_the_motor_set_that_goes_with_them(synthetic, tmp_path):
+    """Complete parameter sets drawn from a marginal posterior directory (what robust
+    tuning uses) carry, with each draw, the motor parameters of the nuisance map."""
+    import xarray as xr
+
+    from jaxlift.model.params import from_unconstrained
+    from jaxlift.posterior.predictive import posterior_draws
+    from jaxlift.posterior.problem import SETTINGS_FILE
+
+    problem = synthetic
+    (tmp_path / SETTINGS_FILE).write_text(json.dumps({"problem": problem.settings()}))
+    rng = np.random.default_rng(1)
+    thetas = problem.theta_opt + 0.01 * rng.standard_normal((4, problem.ndim))
+    phys = problem.to_physical(thetas)
+    post = xr.Dataset({n: (("chain", "draw"), phys[n].reshape(1, 4)) for n in problem.names})
+    xr.DataTree.from_dict({"posterior": post}).to_netcdf(
+        tmp_path / "posterior.nc", engine="h5netcdf"
+    )
+    _, draws = posterior_draws(tmp_path, 4, 0)
+    for d in draws:
+        i = int(np.argmin(np.abs(phys["beta"] - d["beta"])))
+        expected = problem.nuisance_values(thetas[i])["k1"]
+        assert d["k1"] == pytest.approx(expected, rel=1e-9)
+        assert d["k1"] != problem.values["k1"]  # it moved with the draw
+    k = problem.nuisance.index("k1")
+    assert np.asarray(problem.nuisance_map)[k].any()
+    assert float(from_unconstrained(problem.infos["beta"], problem.theta_opt[0])) > 0

@@ -420,9 +420,16 @@ def _objective(theta, space, plant, effects, refs, seeds, weights, cfg, sim_kw):
         ctrl, plant, effects, refs, batched_plants=cfg["batched"], weights=weights,
         noise_seeds=seeds, **sim_kw,
     )  # fmt: skip
+    _, obj, n_bad = _draw_objective(c, ok, cfg)
+    return obj, n_bad
+
+
+def _draw_objective(c, ok, cfg):
+    """Per-draw weights (:func:`draw_weights` of the mean cost over the runs), the
+    objective and the number of failed runs, of costs ``c`` (draws x runs)."""
     per_draw = jnp.mean(c, axis=1)
     w = draw_weights(per_draw, cfg["robust"], cfg["alpha"], cfg["tail_weight"])
-    return jnp.sum(w * per_draw), jnp.sum(~ok)
+    return w, jnp.sum(w * per_draw), jnp.sum(~ok)
 
 
 # module level, so that repeated tunings of the same problem shape compile once
@@ -459,10 +466,9 @@ def _weighted(r, ok, c, cfg, J=None):
     """The residuals (and Jacobian) of draws x runs weighted into one sum of squares
     (mean over the runs, :func:`draw_weights` over the draws), with the objective and
     the number of failed runs."""
-    per_draw = jnp.mean(c, axis=1)
-    w = draw_weights(per_draw, cfg["robust"], cfg["alpha"], cfg["tail_weight"])
+    w, obj, n_bad = _draw_objective(c, ok, cfg)
     scale = jnp.sqrt(w / c.shape[1])
-    aux = (jnp.sum(w * per_draw), jnp.sum(~ok))
+    aux = (obj, n_bad)
     r = (r * scale[:, None, None]).ravel()
     if J is None:
         return r, aux

@@ -26,6 +26,7 @@ from .problem import (
     PosteriorProblem,
     move_nuisances,
     noise_info,
+    nuisance_values,
 )
 
 
@@ -129,17 +130,12 @@ def posterior_draws(
     idx = rng.choice(m, size=n, replace=n > m)
     values = {k: float(v) for k, v in settings["values"].items()}
     draws = [{**values, **{k: float(flat[k][i]) for k in names}} for i in idx]
-    nuisance = [n for n in settings.get("nuisance", []) if not n.startswith("x0@")]
-    if nuisance:  # the motor set that goes with each draw (marginal posterior)
+    if settings.get("nuisance"):  # the motor set that goes with each draw (marginal)
         infos = all_param_infos(make_effects(settings["effects"]))
-        a_map = np.asarray(settings["nuisance_map"], dtype=float)
-        phi0 = np.asarray(settings["nuisance_opt"], dtype=float)
-        th0 = np.asarray(settings["theta_opt"], dtype=float)
-        phys = [k for k, n in enumerate(settings["names"]) if n not in NOISE_NAMES]
         for d in draws:
-            th = np.array([float(to_unconstrained(infos[n], d[n])) for n in names])
-            phi = phi0 + a_map @ (th - th0[phys])
-            for j, n in enumerate(settings["nuisance"]):
-                if not n.startswith("x0@"):
-                    d[n] = float(from_unconstrained(infos[n], phi[j]))
+            theta = [
+                float(to_unconstrained(infos[n], d[n])) if n in infos else 0.0
+                for n in settings["names"]
+            ]  # noise factors (not in infos) do not enter the map
+            d.update({k: v for k, v in nuisance_values(settings, theta).items() if k[:3] != "x0@"})
     return list(settings["effects"]), draws

@@ -188,16 +188,27 @@ class PosteriorProblem:
     def nuisance_values(self, theta: Float[ArrayLike, " P"]) -> dict[str, float]:
         """The motor parameters (physical) and offset changes [m] that go with the
         sampled coordinates ``theta`` (:attr:`nuisance_map`); empty when conditional."""
-        if not self.nuisance:
-            return {}
-        phys = [k for k, n in enumerate(self.names) if n not in NOISE_NAMES]
-        d = np.asarray(theta, dtype=float)[phys] - self.theta_opt[phys]
-        phi = self.nuisance_opt + self.nuisance_map @ d
-        infos = all_param_infos(make_effects(self.effects))
-        out = {}
-        for n, v in zip(self.nuisance, phi, strict=True):
-            out[n] = float(v) if n.startswith("x0@") else float(from_unconstrained(infos[n], v))
-        return out
+        keys = ("names", "effects", "theta_opt", "nuisance", "nuisance_map", "nuisance_opt")
+        return nuisance_values({k: getattr(self, k) for k in keys}, theta)
+
+
+def nuisance_values(settings: Mapping, theta: Float[ArrayLike, " P"]) -> dict[str, float]:
+    """The nuisances that go with the sampled coordinates ``theta`` (unconstrained, all
+    of :attr:`PosteriorProblem.names`), from a problem's :meth:`~PosteriorProblem.settings`
+    (a posterior directory's, too): motor parameters in physical units, ``x0@<log>``
+    offset changes [m]; empty for a conditional posterior."""
+    nuisance = list(settings.get("nuisance", ()))
+    if not nuisance:
+        return {}
+    names = settings["names"]
+    phys = [k for k, n in enumerate(names) if n not in NOISE_NAMES]
+    d = np.asarray(theta, dtype=float)[phys] - np.asarray(settings["theta_opt"])[phys]
+    phi = np.asarray(settings["nuisance_opt"]) + np.asarray(settings["nuisance_map"]) @ d
+    infos = all_param_infos(make_effects(settings["effects"]))
+    return {
+        n: float(v) if n.startswith("x0@") else float(from_unconstrained(infos[n], v))
+        for n, v in zip(nuisance, phi, strict=True)
+    }
 
 
 def move_nuisances(values, experiments, d_theta, a_map, phi0, nuisance, infos_all):

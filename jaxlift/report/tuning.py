@@ -134,9 +134,10 @@ def robustness_report(
         cases.append(("without effects", (), None))
     if noise_seed is not None:
         cases.append((f"{cases[0][0]}, with noise", effects, noise_seed))
-    for (case_name, effs, seed), ref in ((c, r) for c in cases for r in references):
+    batched = {name: batch_models(plant, effs, draws.draws) for name, effs, _ in cases}
+    for (case_name, _, seed), ref in ((c, r) for c in cases for r in references):
         case = f"{case_name} @ {float(ref.m_load):g} kg"
-        plants, effs_b = batch_models(plant, effs, draws.draws)
+        plants, effs_b = batched[case_name]
         noise = None if seed is None else tuning_runs([ref], [seed], len(draws.draws))[1]
         table, rows = {}, []
         for name, ctrl in controllers.items():
