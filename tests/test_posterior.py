@@ -211,7 +211,9 @@ jax.config.update("jax_num_cpu_devices", 2)
 import numpy as np
 sys.path.insert(0, {tests!r})
 from test_posterior import WALKERS, synthetic_logs
-from jaxlift.posterior.problem import make_log_prob, problem_from_settings, sample_posterior
+from jaxlift.posterior.likelihood import make_log_prob
+from jaxlift.posterior.problem import problem_from_settings
+from jaxlift.posterior.sampler import sample_posterior
 problem = problem_from_settings(json.load(open({settings!r})), synthetic_logs())
 th = np.asarray(json.load(open({thetas!r})))
 f2 = make_log_prob(problem)
