@@ -104,6 +104,35 @@ for name in result.free:
     print(f"{name:7s} {result.params[name]:12.5g} ± {result.stderr[name]:.2g}  {flag}")
 
 # %% [markdown]
+# The fit is also an object a notebook shows as a table (`result.table()` is the
+# pandas DataFrame behind it: value, unit, start, standard error, determined or not):
+
+# %%
+result  # noqa: B018  (a notebook shows it)
+
+# %% [markdown]
+# ## Model against measurement, as data
+# `jl.model_vs_measurement(result, logs)` simulates the calibrated model on any logs (fitted or held
+# out) and returns an `xarray.Dataset` of measured and modelled height, speed and
+# pressure, one `sample` dimension with the log's name and time as coordinates: ready
+# for your own plots and statistics.
+
+# %%
+import matplotlib.pyplot as plt  # noqa: E402
+
+ds = jl.model_vs_measurement(result, fit_logs + held_out)
+one = ds.where(ds.log == held_out[0].name, drop=True)
+fig, ax = plt.subplots(figsize=(9, 3))
+ax.plot(one.time_s, one.speed_mps * 1e3, lw=0.5, color="k", label="measured")
+ax.plot(one.time_s, one.speed_mps_model * 1e3, lw=0.8, label="calibrated model")
+ax.set(xlabel="time [s]", ylabel="speed [mm/s]", title=f"{held_out[0].name} (held out)")
+ax.legend()
+plt.show()
+print("RMS speed error per log [mm/s]:",
+      {k: round(float(np.sqrt(np.mean((g.speed_mps - g.speed_mps_model) ** 2))) * 1e3, 2)
+       for k, g in ds.groupby("log")})  # fmt: skip
+
+# %% [markdown]
 # ## Where the model fails
 # The report (`report.html` in the output folder) has the overlays before/after, error
 # tables per regime and stage, oscillation frequency/amplitude per segment against

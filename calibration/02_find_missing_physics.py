@@ -113,3 +113,41 @@ for row in diag["errors_by_step"]:
 print(json.dumps(diag.get("signatures", {}), indent=1)[:3000])
 print("verdict:", diag["verdict"])
 print("report:", OUT / "report.html")
+
+# %% [markdown]
+# ## The first step's candidates as a table
+# Every result is an object a notebook can show: a diagnosis renders its candidates
+# (score, BIC change, held-out error, fitted size ± standard error) as a table.
+
+# %%
+steps[0]  # noqa: B018  (a notebook shows it)
+
+# %% [markdown]
+# ## A second opinion: leave-one-out cross-validation
+# ΔBIC counts parameters; ArviZ's PSIS-LOO instead asks how well each model predicts
+# data it was not given, from its posterior. `jaxlift posterior` stores the pointwise
+# log-likelihood (summed over blocks of one second of each log and signal, because the
+# residuals are correlated in time) beside the posterior, so `az.compare` can weigh the
+# baseline against the diagnosed model. The chains here are short (a second opinion,
+# not the posterior to report); a model clearly better by LOO agrees with the ΔBIC
+# verdict above.
+
+# %%
+import arviz as az  # noqa: E402
+import xarray as xr  # noqa: E402
+
+post_steps = 300 if SMALL else 1500
+models = {
+    "baseline": ([], steps[0].base_fit.params),
+    "diagnosed": (diag["final_effects"], diag["final_params"]),
+}
+trees = {}
+for label, (effects, params) in models.items():
+    folder = OUT / f"posterior_{label}"
+    jl.run_posterior(fit_logs, folder, effects=effects, params=params, max_steps=post_steps,
+                     n_predictive=8, seed=0)  # fmt: skip
+    trees[f"{label} ({', '.join(effects) or 'no effects'})"] = xr.open_datatree(
+        folder / "posterior.nc", engine="h5netcdf"
+    )
+comparison = az.compare(trees)
+comparison  # noqa: B018  (a notebook shows it)

@@ -89,8 +89,9 @@ from .posterior.problem import PosteriorProblem, prepare_posterior
 from .posterior.sampler import SamplerRun, posterior_samples, sample_posterior
 from .report.tuning import robustness_report
 from .workflows.diagnose import run_diagnose
-from .workflows.fit import run_fit
+from .workflows.fit import model_vs_measurement, run_fit
 from .workflows.posterior import run_posterior
+from .workflows.report import ReportBudget, run_report
 from .workflows.simulate import run_simulate
 from .workflows.tune import TuneRun, calibrated_model, run_control_simulate, run_tune
 
@@ -163,6 +164,9 @@ __all__ = [
     "plant_signals_and_derivative",
     "run_diagnose",
     "run_fit",
+    "model_vs_measurement",
+    "run_report",
+    "ReportBudget",
     "screen_effects",
     "AbstractEffect",
     "AbstractStatelessEffect",

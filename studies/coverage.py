@@ -36,6 +36,7 @@ import csv
 import json
 import math
 import pathlib
+import shutil
 import subprocess
 import sys
 import time
@@ -79,13 +80,19 @@ def run_case(spec: dict, data: pathlib.Path, out: pathlib.Path, args) -> dict:
     jl = [sys.executable, "-m", "jaxlift"]
     t0 = time.perf_counter()
     steps = {}
-    fit = subprocess.run(
-        [*jl, "fit", *logs, *eff, "--out", str(res_dir / "fit")], capture_output=True, text=True
-    )
-    steps["fit"] = {"rc": fit.returncode, "tail": fit.stdout[-600:] + fit.stderr[-600:]}
+    params = res_dir / "fit" / "params.json"
+    if params.exists():  # a sitting stopped during the posterior: resume its chain
+        steps["fit"] = {"rc": 0, "tail": "the fit of an earlier sitting, reused"}
+    else:
+        fit = subprocess.run(
+            [*jl, "fit", *logs, *eff, "--out", str(res_dir / "fit")],
+            capture_output=True, text=True,
+        )  # fmt: skip
+        steps["fit"] = {"rc": fit.returncode, "tail": fit.stdout[-600:] + fit.stderr[-600:]}
+        if (res_dir / "posterior").exists():  # a chain of another fit: not resumable
+            shutil.rmtree(res_dir / "posterior")
     result = {"case_id": spec["case_id"], "kind": spec["kind"],
               "hidden_effects": spec["hidden_effects"], "steps": steps}  # fmt: skip
-    params = res_dir / "fit" / "params.json"
     if params.exists():
         post_cmd = [*jl, "posterior", *logs, *eff, "--params", str(params),
                     "--max-steps", str(args.max_steps), "--predictive", "8",

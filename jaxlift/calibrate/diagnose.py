@@ -39,10 +39,12 @@ checking after each addition whether an effect added earlier has become redundan
 from __future__ import annotations
 
 import dataclasses
+import html
 import math
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
+import pandas as pd
 
 from ..analysis.regimes import stage_of
 from ..model.effects import EFFECTS
@@ -114,6 +116,33 @@ class Diagnosis:
         before = self.base_chi2 / self.n_residuals - 1.0
         after = self.winner_fit.chi2 / self.winner_fit.n_residuals - 1.0
         return (before - after) / before if before > 0 else None
+
+    def table(self):
+        """The candidates as a :class:`pandas.DataFrame` indexed by effect, in the
+        ranking's order: score ``z`` and ``p`` of the screen, the refit's ``delta_bic``
+        (negative = better with the effect), held-out chi2/N before and after, the
+        fitted sizes with their standard errors, and why a candidate failed."""
+        rows = []
+        for r in self.ranking:
+            sizes = ", ".join(
+                f"{k} = {v:.4g} ± {(r.fitted_stderr or {}).get(k, math.nan):.2g}"
+                for k, v in (r.fitted_params or {}).items()
+            )
+            rows.append(
+                {"effect": r.effect, "z": r.z, "p": r.p_value, "delta_bic": r.delta_bic,
+                 "heldout_chi2_before": r.heldout_chi2_before,
+                 "heldout_chi2_after": r.heldout_chi2_after, "fitted": sizes,
+                 "failure": r.failure or ""}
+            )  # fmt: skip
+        return pd.DataFrame(rows).set_index("effect")
+
+    def _repr_html_(self) -> str:
+        model = "baseline" + "".join(f" + {e}" for e in self.base_effects)
+        head = f"<p><b>Diagnosis</b> of the {model}: verdict <b>{self.verdict}</b>"
+        if self.undecided_between:
+            head += f" (between {' and '.join(self.undecided_between)})"
+        head += "</p>" + "".join(f"<p>{html.escape(r)}</p>" for r in self.reasons)
+        return head + self.table().to_html(float_format=lambda x: f"{x:.4g}", na_rep="")
 
     def as_dict(self) -> dict:
         return {
@@ -599,6 +628,7 @@ def diagnose_iteratively(
     *,
     max_effects: int = 3,
     bic_threshold: float = 10.0,
+    base: FitResult | None = None,
     progress: Callable[[str], None] | None = None,
     **kwargs,
 ) -> list[Diagnosis]:
@@ -613,11 +643,13 @@ def diagnose_iteratively(
     ``bic_threshold`` without it, the newcomer explains its part of the data and it is
     dropped (recorded in :attr:`Diagnosis.dropped`). Forward selection alone keeps an
     effect that was chosen early because it mimicked the real one (a pure delay for a
-    motor lag)."""
+    motor lag).
+
+    ``base``: a fit of the first step's model (its effects are the starting model),
+    instead of fitting it here."""
     say = progress or (lambda _s: None)
     steps: list[Diagnosis] = []
-    effects: list[str] = []
-    base = None
+    effects: list[str] = [] if base is None else list(base.effects)
     for _ in range(max_effects + 1):
         d = diagnose(logs, validate_logs, base_effects=effects, base=base, progress=progress,
                      bic_threshold=bic_threshold, **kwargs)  # fmt: skip

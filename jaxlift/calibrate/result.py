@@ -9,6 +9,7 @@ import math
 
 import jax
 import numpy as np
+import pandas as pd
 
 from ..model.build import Model, all_param_infos, with_params
 from ..model.params import ParamInfo, from_unconstrained
@@ -82,6 +83,41 @@ class FitResult:
         """Whether the final stage converged (earlier stages of a staged fit only
         prepare its start; their status is in ``stages``)."""
         return self.stages[-1].converged
+
+    # -- for notebooks ----------------------------------------------------------------
+
+    def table(self):
+        """The parameters as a :class:`pandas.DataFrame` indexed by name: ``unit``,
+        ``start``, ``value``, ``stderr`` (physical units, AR(1)-inflated; NaN for a
+        fixed parameter), ``rel_stderr``, ``free`` and ``determined`` (``"yes"``, the
+        reason it is not, or ``"fixed"``)."""
+        infos = all_param_infos(self.effects)
+        rows = []
+        for name, value in self.params.items():
+            se = self.stderr.get(name, math.nan)
+            free = name in self.free
+            rows.append(
+                {
+                    "parameter": name,
+                    "unit": infos[name].unit if name in infos else "",
+                    "start": self.initial.get(name, math.nan),
+                    "value": value,
+                    "stderr": se,
+                    "rel_stderr": abs(se / value) if value else math.nan,
+                    "free": free,
+                    "determined": self.undetermined.get(name, "yes") if free else "fixed",
+                }
+            )
+        return pd.DataFrame(rows).set_index("parameter")
+
+    def _repr_html_(self) -> str:
+        head = (
+            f"<p><b>Fit</b> of the model with effects {', '.join(self.effects) or 'none'}: "
+            f"{'converged' if self.converged else '<b>not converged</b>'}; chi2/N "
+            + ", ".join(f"{k} {v:.3g}" for k, v in self.chi2_per_log.items())
+            + f" (1 = sensor noise); residual lag-1 autocorrelation {self.rho1:.2f}.</p>"
+        )
+        return head + self.table().to_html(float_format=lambda x: f"{x:.4g}")
 
 
 def inside_bounds(info: ParamInfo, v: float) -> float:

@@ -100,6 +100,28 @@ def cmd_diagnose(args) -> int:
     return 0
 
 
+def cmd_report(args) -> int:
+    from jaxlift.workflows.report import run_report
+
+    logs = read_logs(args.logs, args)
+    val = read_logs(args.validate or [], args)
+    print(
+        f"report on {len(logs)} log(s); held out: {', '.join(lg.name for lg in val) or 'none'}"
+        f"{' (quick)' if args.quick else ''}",
+        flush=True,
+    )
+    s = run_report(
+        logs, val, out_dir=args.out, quick=args.quick, seed=args.seed,
+        progress=lambda line: print(line, flush=True), progress_bar=True,
+    )  # fmt: skip
+    print(f"verdict: {s['verdict']}")
+    if s["air"]:
+        print(f"air: {s['air']['text']}")
+    print("recommended gains: " + ", ".join(f"{k} = {v:.4g}" for k, v in s["gains"].items()))
+    print(f"stage times [s]: {', '.join(f'{k} {v:.0f}' for k, v in s['stage_wall_s'].items())}")
+    return 0
+
+
 def cmd_fleet(args) -> int:
     from jaxlift.fleet import run_fleet
 
@@ -192,6 +214,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=cmd_diagnose)
+
+    p = sub.add_parser(
+        "report",
+        help="the whole story in one report: fit, diagnosis, posterior, tuned gains",
+    )
+    p.add_argument("logs", nargs="+", help="logs to fit (CSV, Parquet or MDF 4)")
+    p.add_argument("--validate", nargs="*", default=[], help="held-out logs (not fitted)")
+    p.add_argument(
+        "--quick", action="store_true",
+        help="small budget (~3 min): candidates screened, not confirmed; Laplace instead of "
+        "MCMC; nominal tuning only",
+    )  # fmt: skip
+    p.add_argument("--seed", type=int, default=0, help="seed of fits, posterior and draws")
+    p.add_argument(
+        "--out", required=True,
+        help="output directory (a second run reuses the stages whose inputs did not change)",
+    )  # fmt: skip
+    p.set_defaults(func=cmd_report)
 
     p = sub.add_parser(
         "fleet",

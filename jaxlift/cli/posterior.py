@@ -61,6 +61,7 @@ def cmd_posterior(args) -> int:
         max_steps=args.max_steps,
         seed=args.seed,
         n_predictive=args.predictive,
+        n_loglik=args.loglik_draws,
         beta_oil=args.beta_oil,
         move=MOVES[args.move](),
         devices=None if args.devices is None else min(args.devices, len(jax.local_devices())),
@@ -134,6 +135,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--predictive", type=int, default=64, help="posterior-predictive draws (default 64)"
     )
+    p.add_argument(
+        "--loglik-draws", type=int, default=128,
+        help="draws for the pointwise log-likelihood in posterior.nc (az.loo, az.compare; "
+        "default 128, 0: none)",
+    )  # fmt: skip
     p.add_argument("--beta-oil", type=float, default=1.4e9, help="bulk modulus of ideal oil [Pa]")
     p.add_argument(
         "--move",

@@ -46,8 +46,9 @@ def hdi(x: np.ndarray, prob: float = 0.9) -> tuple[float, float]:
 def predictive(
     problem: PosteriorProblem, thetas: Float[ArrayLike, "D P"], batch_size: int = 16
 ) -> list[dict[str, np.ndarray]]:
-    """Simulated height [m] and speed [m/s] of every log for each draw (unconstrained
-    coordinates), ``[{"height": (D, N), "speed": (D, N), "ok": (D,)}]`` per log."""
+    """Simulated height [m], speed [m/s] and gauge pressure [Pa] of every log for each
+    draw (unconstrained coordinates), ``[{"height": (D, N), "speed": (D, N),
+    "pressure": (D, N), "ok": (D,)}]`` per log."""
     plant0, effs0 = problem.model.plant, problem.model.effects
     bs = max(1, min(batch_size, int(np.shape(thetas)[0])))
     fn = _predictive_fn(problem.names, problem.effects, bs, problem.nuisance)
@@ -62,8 +63,8 @@ def predictive(
         jnp.asarray(np.asarray(problem.nuisance_opt, dtype=float)),
     )
     res = fn(jnp.asarray(thetas), args)
-    return [{"height": np.asarray(h), "speed": np.asarray(v), "ok": np.asarray(ok)}
-            for h, v, ok in res]  # fmt: skip
+    return [{"height": np.asarray(h), "speed": np.asarray(v), "pressure": np.asarray(p),
+             "ok": np.asarray(ok)} for h, v, p, ok in res]  # fmt: skip
 
 
 @functools.lru_cache(maxsize=16)
@@ -85,7 +86,7 @@ def _predictive_fn(
         outs = []
         for exp in experiments:
             sol = simulate(plant, effs, exp.inputs, max_steps=SIM_MAX_STEPS, stability_limit=False)
-            outs.append((sol.height, sol.speed, sol.ok))
+            outs.append((sol.height, sol.speed, sol.pressure, sol.ok))
         return outs
 
     return jax.jit(lambda th, a: jax.lax.map(lambda t: one(t, a), th, batch_size=batch_size))

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import base64
 import html
+import json
 import math
 import os
 import re
@@ -288,14 +289,51 @@ class Report:
 
     def write(self, out_dir: str | os.PathLike, stem: str = "report") -> tuple[str, str]:
         """Write ``out_dir/stem.md`` and ``out_dir/stem.html`` (UTF-8, ``\\n`` line ends),
-        creating ``out_dir``.  Returns ``(md_path, html_path)``."""
+        creating ``out_dir``, and the report's content as ``out_dir/stem.json`` (figure
+        links relative to ``out_dir``; :meth:`read` loads it, so that another report can
+        :meth:`include` this one).  Returns ``(md_path, html_path)``."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         md_path = out / f"{stem}.md"
         html_path = out / f"{stem}.html"
         md_path.write_text(self.to_markdown(out), encoding="utf-8", newline="\n")
         html_path.write_text(self.to_html(out), encoding="utf-8", newline="\n")
+        items = [
+            (kind, {**it, "path": self._link(it["path"], out)} if kind == "figure" else it)
+            for kind, it in self._items
+        ]
+        content = {"title": self.title, "items": [[k, it] for k, it in items]}
+        (out / f"{stem}.json").write_text(
+            json.dumps(content, indent=0) + "\n", encoding="utf-8", newline="\n"
+        )
         return os.fspath(md_path), os.fspath(html_path)
+
+    @classmethod
+    def read(cls, out_dir: str | os.PathLike, stem: str = "report") -> Report:
+        """The report that :meth:`write` wrote into ``out_dir`` (from ``stem.json``),
+        its figures as absolute paths.  :class:`FileNotFoundError` if there is none."""
+        out = Path(out_dir).resolve()
+        path = out / f"{stem}.json"
+        try:
+            content = json.loads(path.read_text(encoding="utf-8"))
+            rep = cls(content["title"])
+            for kind, it in content["items"]:
+                if kind == "figure":
+                    it = {**it, "path": os.fspath(out / it["path"])}
+                rep._items.append((str(kind), dict(it)))
+        except (KeyError, TypeError, ValueError) as err:
+            raise ValueError(f"{path}: not a jaxlift report ({err})") from None
+        return rep
+
+    def include(self, other: Report, title: str | None = None, level: int = 2) -> Report:
+        """Append ``other`` as a section: its title (or ``title``) as a heading of
+        ``level``, its headings moved down to fit below it (at most level 6)."""
+        self.heading(other.title if title is None else title, level)
+        for kind, it in other._items:
+            if kind == "heading":
+                it = {**it, "level": min(6, it["level"] + level - 1)}
+            self._items.append((kind, dict(it)))
+        return self
 
 
 def json_safe(x):

@@ -10,6 +10,7 @@ from collections.abc import Sequence
 
 import arviz as az
 import numpy as np
+import xarray as xr
 
 from ..analysis.oscillation import zoom_windows
 from ..analysis.regimes import segment_log
@@ -17,6 +18,7 @@ from ..model.constants import BETA_OIL
 from ..model.log import Log
 from ..model.params import to_unconstrained
 from ..posterior.air import AIR_THRESHOLD, air_content, air_verdict, mean_working_pressure
+from ..posterior.pointwise import pointwise_groups
 from ..posterior.predictive import predictive
 from ..posterior.problem import NOISE_NAMES, PosteriorProblem
 from ..posterior.sampler import SamplerRun, posterior_samples
@@ -59,11 +61,19 @@ def write_outputs(
     out: pathlib.Path,
     *,
     n_predictive: int = 64,
+    n_loglik: int = 128,
     seed: int = 0,
     beta_oil: float = BETA_OIL,
 ) -> dict:
     """Write ``posterior.nc``, ``summary.csv``, ``posterior.json``, figures and the report
-    into ``out``; returns the content of ``posterior.json``."""
+    into ``out``; returns the content of ``posterior.json``.
+
+    ``posterior.nc`` holds the groups ``posterior``, ``sample_stats``, ``prior`` and,
+    from ``n_loglik`` draws (0: left out), ``observed_data``, ``posterior_predictive``
+    (``n_predictive`` of them, with noise) and ``log_likelihood`` (pointwise per
+    second of each log and signal: :mod:`jaxlift.posterior.pointwise`), so that
+    ``az.loo`` and ``az.compare`` work on it. ``n_predictive`` draws also make the
+    prediction bands."""
     figs = out / "figures"
     figs.mkdir(parents=True, exist_ok=True)
     samples, lp, thin = posterior_samples(problem, run.path, run.tau)
@@ -89,6 +99,25 @@ def write_outputs(
         "jaxlift_beta_oil_pa": beta_oil,
     }
     dt = build_datatree(problem, samples, lp, extra, attrs, seed)
+    # draws for the prediction bands and the pointwise log-likelihood (az.loo/compare)
+    rng = np.random.default_rng(seed + 2)
+    flat = np.stack([np.asarray(samples[n]).ravel() for n in problem.names], axis=-1)
+    n_draws = min(max(n_predictive, n_loglik), flat.shape[0])
+    idx = rng.choice(flat.shape[0], size=n_draws, replace=False)
+    thetas = np.stack(
+        [np.asarray(to_unconstrained(problem.infos[n], flat[idx, k]))
+         for k, n in enumerate(problem.names)], axis=-1,
+    )  # fmt: skip
+    pred = predictive(problem, thetas)
+    ok = np.all([pr["ok"] for pr in pred], axis=0)
+    if n_loglik > 0 and np.any(ok):
+        groups = pointwise_groups(
+            problem, thetas[ok], [{k: v[ok] for k, v in pr.items()} for pr in pred],
+            n_predictive=n_predictive, seed=seed + 3,
+        )  # fmt: skip
+        for group, ds in groups.items():
+            dt[group] = xr.DataTree(ds)
+        dt["log_likelihood"].attrs["jaxlift_failed_draws"] = int(np.sum(~ok))
     nc = out / "posterior.nc"
     if nc.exists():
         nc.unlink()
@@ -106,18 +135,10 @@ def write_outputs(
     fig_paths["tau"] = _plot_tau(run, figs)
     if air is not None:
         fig_paths["air"] = _plot_air(extra["air_fraction"], air, figs)
-    rng = np.random.default_rng(seed + 2)
-    flat = np.stack([np.asarray(samples[n]).ravel() for n in problem.names], axis=-1)
-    idx = rng.choice(flat.shape[0], size=min(n_predictive, flat.shape[0]), replace=False)
-
-    thetas = np.stack(
-        [np.asarray(to_unconstrained(problem.infos[n], flat[idx, k]))
-         for k, n in enumerate(problem.names)], axis=-1,
-    )  # fmt: skip
-    pred = predictive(problem, thetas)
     pred_figs = []
     for log, pr in zip(logs, pred):
-        pred_figs.extend(_plot_bands(log, pr, figs))
+        band = {k: v[:n_predictive] for k, v in pr.items()}
+        pred_figs.extend(_plot_bands(log, band, figs))
 
     rows = []
     for n in names:

@@ -14,6 +14,7 @@ from ..analysis.oscillation import oscillation_table, zoom_windows
 from ..analysis.regimes import error_table, segment_log
 from ..calibrate.diagnose import diagnose, diagnose_iteratively, final_verdict, found_effects
 from ..calibrate.fit import estimate_x0_offsets
+from ..calibrate.result import FitResult
 from ..model.log import Log
 from ..report.analysis_plots import plot_oscillations_vs_height
 from ..report.document import Report, json_safe
@@ -71,18 +72,26 @@ def run_diagnose(
     max_effects: int = 3,
     n_starts: int = 2,
     seed: int = 0,
+    base: FitResult | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> list:
     """Diagnose (iteratively: add the winner and diagnose again until ``none``), write
-    ``diagnosis.json``, figures and the report. Returns the list of diagnoses."""
+    ``diagnosis.json``, figures and the report. Returns the list of diagnoses.
+    ``base``: a fit of the baseline (or of a starting model: its effects) to begin
+    from, instead of fitting it first."""
 
     if iterate:
         steps = diagnose_iteratively(
             logs, validate_logs, max_effects=max_effects, n_starts=n_starts, seed=seed,
-            progress=progress,
+            base=base, progress=progress,
         )  # fmt: skip
     else:
-        steps = [diagnose(logs, validate_logs, n_starts=n_starts, seed=seed, progress=progress)]
+        steps = [
+            diagnose(
+                logs, validate_logs, n_starts=n_starts, seed=seed, progress=progress, base=base,
+                base_effects=() if base is None else base.effects,
+            )
+        ]  # fmt: skip
     out = pathlib.Path(out_dir)
     figs = out / "figures"
     figs.mkdir(parents=True, exist_ok=True)

@@ -12,6 +12,7 @@ from collections.abc import Callable, Mapping, Sequence
 
 import equinox as eqx
 import numpy as np
+import xarray as xr
 
 from ..calibrate.fit import estimate_x0_offsets, fit
 from ..calibrate.result import FitResult
@@ -52,6 +53,43 @@ def simulate_logs(
             }
         )
     return out
+
+
+def model_vs_measurement(result: FitResult, logs: Sequence[Log]) -> xr.Dataset:
+    """Model against measurement on ``logs`` (fitted or held out), as an
+    :class:`xarray.Dataset` over one ``sample`` dimension with the coordinates ``log``
+    (name) and ``time_s`` [s]: ``height_m`` [m], ``speed_mps`` [m/s] and
+    ``pressure_pa`` [Pa, gauge] as measured (NaN where a log has no such column) and
+    ``*_model`` as simulated with the fit's parameters (the fitted logs' initial-height
+    offsets from the fit; other logs' estimated under the fitted model). One log:
+    ``ds.where(ds.log == name, drop=True)``; per log: ``ds.groupby("log")``.
+    Raises :class:`~jaxlift.SimulationError` if a simulation fails."""
+    logs = list(logs)
+    others = [lg for lg in logs if lg.name not in result.x0_offsets]
+    offsets = {**estimate_x0_offsets(result.params, result.effects, others), **result.x0_offsets}
+    sims = simulate_logs(result.params, result.effects, logs, offsets)
+    cols: dict[str, list] = {"log": [], "time_s": []}
+    for lg, sim in zip(logs, sims, strict=True):
+        cols["log"].append(np.full(lg.n, lg.name))
+        cols["time_s"].append(np.asarray(lg.time_s))
+        for col, key in (("height_m", "height"), ("speed_mps", "speed"),
+                         ("pressure_pa", "pressure")):  # fmt: skip
+            meas = getattr(lg, col)
+            cols.setdefault(col, []).append(
+                np.full(lg.n, np.nan) if meas is None else np.asarray(meas, float)
+            )
+            cols.setdefault(col + "_model", []).append(np.asarray(sim[key], float))
+    units = {"height_m": "m", "speed_mps": "m/s", "pressure_pa": "Pa (gauge)"}
+    data = {
+        k: ("sample", np.concatenate(v), {"units": units[k.removesuffix("_model")]})
+        for k, v in cols.items()
+        if k not in ("log", "time_s")
+    }
+    coords = {
+        "log": ("sample", np.concatenate(cols["log"])),
+        "time_s": ("sample", np.concatenate(cols["time_s"]), {"units": "s"}),
+    }
+    return xr.Dataset(data, coords=coords, attrs={"effects": ", ".join(result.effects)})
 
 
 def chi2n(log: Log, sim: dict[str, np.ndarray]) -> float:

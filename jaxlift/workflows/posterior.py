@@ -41,6 +41,7 @@ def run_posterior(
     chunk: int = 50,
     tau_factor: float = 50.0,
     n_predictive: int = 64,
+    n_loglik: int = 128,
     beta_oil: float = BETA_OIL,
     batch: str = "map",
     move: AbstractMove | None = None,
@@ -59,7 +60,9 @@ def run_posterior(
     If ``out_dir`` already has a chain, the run resumes it; the requested settings must
     match the stored ones (else :class:`ValueError`; ``move`` among them: a directory
     from before the choice of move holds a stretch-move chain). ``move`` and
-    ``devices``: see :func:`sample_posterior`. ``conditioning``: ``"marginal"``
+    ``devices``: see :func:`sample_posterior`. ``n_predictive``, ``n_loglik``: draws for
+    the prediction bands and for the pointwise log-likelihood in ``posterior.nc``
+    (:func:`~jaxlift.report.posterior.write_outputs`). ``conditioning``: ``"marginal"``
     (default: the motor set and the initial-height offsets move with the sampled
     parameters, :func:`~jaxlift.posterior.problem.prepare_posterior`) or
     ``"conditional"`` (held at their least-squares values). Returns the content of
@@ -134,5 +137,6 @@ def run_posterior(
         + ("converged" if run.converged else "NOT converged")
     )
     return write_outputs(
-        problem, run, logs, out, n_predictive=n_predictive, seed=seed, beta_oil=beta_oil
-    )
+        problem, run, logs, out, n_predictive=n_predictive, n_loglik=n_loglik, seed=seed,
+        beta_oil=beta_oil,
+    )  # fmt: skip

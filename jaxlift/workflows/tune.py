@@ -11,12 +11,14 @@ sets), ``summary.json``, figures and a report, and returns a :class:`TuneRun`.
 from __future__ import annotations
 
 import dataclasses
+import html
 import json
 import os
 import pathlib
 from collections.abc import Callable, Sequence
 
 import numpy as np
+import pandas as pd
 
 from ..control.closed_loop import ClosedLoopSolution, simulate_closed_loop
 from ..control.controller import PID, THESIS_PID, AbstractController, ScheduledPID, save_gains
@@ -93,6 +95,23 @@ class TuneRun:
     draws: DrawSet | None
     robustness: dict
     notes: list[str]
+
+    def table(self):
+        """Every gain set compared, as a :class:`pandas.DataFrame` indexed by name:
+        the tuning cost on the nominal model (mean over the loads and noise seeds) and
+        the gains (P [V/(m/s)], I [V/m], D [V s²/m], N [1/s], K_aw [1/s]; scheduled
+        PID: per stage)."""
+        return pd.DataFrame(self.rows).set_index("gains")
+
+    def _repr_html_(self) -> str:
+        head = (
+            f"<p><b>Tuned gains</b>: recommended <b>{self.chosen_name}</b>"
+            + "".join(f"<br>note: {html.escape(n)}" for n in self.notes)
+            + "</p>"
+        )
+        verdict = self.robustness.get("robust_vs_nominal")
+        tail = f"<p>{html.escape(verdict['text'])}</p>" if verdict else ""
+        return head + self.table().to_html(float_format=lambda x: f"{x:.4g}") + tail
 
 
 def run_tune(
@@ -175,6 +194,8 @@ def run_tune(
     draws = None
     fit_dir = os.path.dirname(os.path.abspath(params_path)) if params_path else None
     try:
+        if robust_draws + eval_draws <= 0:  # nominal only: no draws wanted
+            raise ValueError("none asked for (robust_draws = eval_draws = 0)")
         draws = parameter_draws(
             robust_draws + eval_draws,
             seed,
