@@ -4,10 +4,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import arviz as az
 import numpy as np
 import pytest
 import xarray as xr
+from scipy.signal import lfilter
 from test_posterior import TRUTH, WALKERS, _batch, synthetic_logs
 
 from jaxlift.model.params import from_unconstrained
@@ -15,7 +18,7 @@ from jaxlift.posterior.likelihood import make_log_prob
 from jaxlift.posterior.pointwise import LOGLIK_VAR, block_starts, pointwise_groups
 from jaxlift.posterior.predictive import predictive
 from jaxlift.posterior.priors import log_abs_det_jac
-from jaxlift.posterior.problem import prepare_posterior
+from jaxlift.posterior.problem import innovation_variance_factor, prepare_posterior
 from jaxlift.posterior.sampler import sample_posterior
 from jaxlift.report.posterior import write_outputs
 
@@ -92,3 +95,44 @@ def test_block_starts_merge_idle_windows():
     np.testing.assert_array_equal(block_starts(pwm, 5), [0, 20])
     np.testing.assert_array_equal(block_starts(np.zeros(7), 5), [0])
     np.testing.assert_array_equal(block_starts(np.ones(12), 5), [0, 5, 10])
+
+
+# ------------------------------------------------------------------ the noise model's check
+
+
+def test_innovation_variance_factor_is_the_long_run_variance_ratio():
+    rng = np.random.default_rng(0)
+    white = rng.standard_normal(200_000)
+    assert innovation_variance_factor(white) == pytest.approx(1.0, abs=0.05)
+    phi, lags = 0.5, 20
+    ar = lfilter([1.0], [1.0, -phi], white)
+    k = np.arange(1, lags + 1)
+    expected = 1 + 2 * np.sum((1 - k / (lags + 1)) * phi**k)  # Bartlett-weighted, by hand
+    assert innovation_variance_factor(ar, lags) == pytest.approx(expected, rel=0.03)
+    # negative correlation (alternating signs) counts as much as positive
+    alt = lfilter([1.0], [1.0, phi], white)
+    assert innovation_variance_factor(alt, lags) == pytest.approx(expected, rel=0.03)
+
+
+@pytest.mark.slow
+def test_correlated_innovations_widen_the_noise_model(logs):
+    """A slow disturbance on the speed signals (not in the model, not AR(1)) fails the
+    Ljung-Box test; the noise variance of those signals is widened, the others not."""
+    rng = np.random.default_rng(3)
+    disturbed = []
+    for lg in logs:
+        drift = lfilter([1.0], [1.0, -1.6, 0.8], rng.standard_normal(lg.n)) * 1.5e-3
+        disturbed.append(dataclasses.replace(lg, speed_mps=np.asarray(lg.speed_mps) + drift))
+    plain = prepare_posterior(disturbed, params=TRUTH, widen=False)
+    wide = prepare_posterior(disturbed, params=TRUTH)
+    for c_plain, c_wide in zip(
+        plain.ls_info["innovation_check"], wide.ls_info["innovation_check"], strict=True
+    ):
+        assert c_plain["p"] == pytest.approx(c_wide["p"])  # the same test, another model
+        if c_wide["signal"] == "speed":
+            assert not c_wide["white"] and c_wide["widened"] and c_wide["variance_factor"] > 1.5
+            assert not c_plain["widened"]
+    i = 0
+    assert wide.scale[i, 1] == pytest.approx(
+        plain.scale[i, 1] * np.sqrt(wide.ls_info["innovation_check"][1]["variance_factor"])
+    )

@@ -512,7 +512,8 @@ def refit_starts(effect: str, screen_estimate: float) -> list[dict[str, float]]:
     effect's typical range (:attr:`~jaxlift.ParamInfo.typical`: the sizes a real
     vehicle can have), then a log-spaced grid over that range (low end, geometric
     middle, high end), each grid point paired with the same position in the range of
-    the effect's second parameter where it has one (``v_s``, ``c_s``). A grid point
+    the effect's second parameter where it has one (``v_s``, ``c_s``; those effects
+    also start from the range's quartiles with the second parameter nominal). A grid point
     within a factor 2 of an earlier start is left out. The score says where the optimum
     is near the nesting value; the grid lets a refit reach it from anywhere in the
     range, whatever the true size."""
@@ -529,6 +530,16 @@ def refit_starts(effect: str, screen_estimate: float) -> list[dict[str, float]]:
         if any(abs(math.log(v / st[par])) < math.log(2.0) for st in starts):
             continue
         starts.append({par: v, **{n: _log_between(a, b, q) for n, (a, b) in seconds}})
+    if seconds:
+        # two-parameter effects: also the quartiles of the range with the second
+        # parameter at its nominal value. Their chi2 surface is rough (stick-slip:
+        # on the shipped logs the refits from 20 N/2 mm/s, 200 N/7.7 mm/s and
+        # 2 kN/30 mm/s all stalled at chi2/N 3.8-9.9, the one from 63 N/10 mm/s
+        # reached 1.2), so a grid of three paired points is too coarse.
+        for q in (0.25, 0.75):
+            v = _log_between(lo, hi, q)
+            if not any(abs(math.log(v / st[par])) < math.log(2.0) for st in starts):
+                starts.append({par: v})
     return starts
 
 

@@ -101,7 +101,7 @@ def cmd_diagnose(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from jaxlift.workflows.report import run_report
+    from jaxlift.workflows.report import gain_order, run_report
 
     logs = read_logs(args.logs, args)
     val = read_logs(args.validate or [], args)
@@ -117,7 +117,8 @@ def cmd_report(args) -> int:
     print(f"verdict: {s['verdict']}")
     if s["air"]:
         print(f"air: {s['air']['text']}")
-    print("recommended gains: " + ", ".join(f"{k} = {v:.4g}" for k, v in s["gains"].items()))
+    order = sorted(s["gains"], key=gain_order)
+    print("recommended gains: " + ", ".join(f"{k} = {s['gains'][k]:.4g}" for k in order))
     print(f"stage times [s]: {', '.join(f'{k} {v:.0f}' for k, v in s['stage_wall_s'].items())}")
     return 0
 

@@ -260,6 +260,25 @@ def _ar1_stats(r: np.ndarray) -> tuple[float, float]:
     return rho, float(np.sqrt(np.mean(e**2)))
 
 
+def innovation_variance_factor(e: np.ndarray, lags: int = INNOVATION_LAGS) -> float:
+    """How much less independent information correlated innovations ``e`` hold than
+    white ones of the same variance: ``1 + 2 sum_k (1 - k/(L+1)) |acf_k|`` over lags
+    ``k = 1..L`` (Bartlett weights). For any weights ``a``, ``Var(sum a_t e_t) <=
+    var(e) sum a_t^2 (1 + 2 sum_k |acf_k|)`` (each lag's cross term is at most
+    ``|acf_k| sum a_t^2``): the factor bounds the variance inflation of every linear
+    estimate, whatever the shape of the correlation (an oscillating residual, whose
+    autocorrelations change sign, too; the long-run variance ratio without the absolute
+    values would miss it). Multiplying the noise variance by it makes a likelihood that
+    treats the innovations as white count no more information than they hold."""
+    x = np.asarray(e, dtype=float) - float(np.mean(e))
+    den = float(x @ x)
+    if den <= 0 or x.size <= lags + 1:
+        return 1.0
+    acf = np.array([float(x[k:] @ x[:-k]) / den for k in range(1, lags + 1)])
+    weights = 1.0 - np.arange(1, lags + 1) / (lags + 1)
+    return 1.0 + 2.0 * float(weights @ np.abs(acf))
+
+
 def prepare_posterior(
     logs: Sequence[Log],
     *,
@@ -272,6 +291,7 @@ def prepare_posterior(
     n_starts: int = 2,
     seed: int = 0,
     conditioning: str = "marginal",
+    widen: bool = True,
     progress: Callable[[str], None] | None = None,
 ) -> PosteriorProblem:
     """Set up the posterior: least squares first, then the likelihood's noise model.
@@ -292,6 +312,11 @@ def prepare_posterior(
             linearised conditional optimum, so that their uncertainty reaches the
             intervals; ``"conditional"``: they stay at the least-squares values (the
             intervals are then conditional on them, and narrower).
+        widen: where the noise model's innovations fail the Ljung--Box test (p below
+            :data:`INNOVATION_P_MIN` over :data:`INNOVATION_LAGS` lags: correlation the
+            AR(1) model does not describe), multiply that log's and signal's noise
+            variance by :func:`innovation_variance_factor` (default); False: only warn.
+            Recorded per log and signal in ``ls_info["innovation_check"]``.
         progress: called with a line of text per stage.
 
     Returns:
@@ -347,9 +372,13 @@ def prepare_posterior(
         for k in exp.signals:  # the noise model's own assumption, checked
             e_k = r[k][1:] - rho[i, k] * r[k][:-1]
             q, dof, p = ljung_box(e_k, INNOVATION_LAGS, fitted=1 if likelihood == "ar1" else 0)
+            white = bool(p >= INNOVATION_P_MIN)
+            factor = 1.0 if white or not widen else innovation_variance_factor(e_k)
+            scale[i, k] *= math.sqrt(factor)
             checks.append(
                 {"log": exp.name, "signal": ("height", "speed", "pressure")[k], "q": q,
-                 "dof": dof, "p": p, "white": bool(p >= INNOVATION_P_MIN)}
+                 "dof": dof, "p": p, "white": white, "variance_factor": factor,
+                 "widened": not white and widen}
             )  # fmt: skip
     all_names = list(names) + (
         [n for k, n in enumerate(NOISE_NAMES) if any(k in e.signals for e in experiments)]
@@ -370,9 +399,17 @@ def prepare_posterior(
     if bad:
         say(
             "warning: the noise model leaves autocorrelation in the innovations "
-            + ", ".join(f"{c['log']} {c['signal']} (Ljung-Box p {c['p']:.2g})" for c in bad)
-            + ": the intervals assume more independent information than the residuals "
-            "hold and may be too narrow; --sample-noise widens them by the residuals' scale"
+            + ", ".join(
+                f"{c['log']} {c['signal']} (Ljung-Box p {c['p']:.2g}"
+                + (f", noise variance x {c['variance_factor']:.2f})" if widen else ")")
+                for c in bad
+            )
+            + (
+                ": their noise scale is widened by the innovations' long-run variance "
+                "(the likelihood then counts the information they really hold)"
+                if widen
+                else ": the intervals may be too narrow (widening switched off)"
+            )
         )
     problem = PosteriorProblem(
         names=tuple(all_names),

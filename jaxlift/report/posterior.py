@@ -316,24 +316,39 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
                 "rho": float(problem.rho[i, k]),
                 "innovation scale / sensor noise": float(problem.scale[i, k]),
                 "Ljung-Box p (innovations)": checks.get((e.name, sig[k]), {}).get("p"),
+                "variance widened x": checks.get((e.name, sig[k]), {}).get("variance_factor"),
             }
             for i, e in enumerate(problem.experiments)
             for k in e.signals
         ],
         floatfmt=".3g",
-        caption="Residual noise model per log and signal; the last column tests whether "
-        "the model's innovations are white up to lag 20 (0.2 s).",
+        caption="Residual noise model per log and signal. Ljung-Box: whether the model's "
+        "innovations are white up to lag 20 (0.2 s); where not (p < 0.01), the noise "
+        "variance is multiplied by the innovations' long-run variance factor (last "
+        "column; the innovation scale shown includes it).",
     )
     bad = [c for c in checks.values() if not c["white"]]
     if bad:
+        widened = all(c.get("widened", False) for c in bad)
         rep.text(
-            "**Warning: the noise model does not hold.** The innovations of "
-            + ", ".join(f"`{c['log']}` {c['signal']} (p {c['p']:.2g})" for c in bad)
-            + " are autocorrelated beyond what the noise model describes (Ljung-Box, 20 "
-            "lags, p < 0.01): the likelihood counts more independent information than the "
-            "residuals hold, so the intervals may be too narrow. `--sample-noise` widens "
-            "them by the residuals' own scale; a model error shows here too (see the "
-            "diagnosis)."
+            "**Warning: the AR(1) noise model does not hold.** The innovations of "
+            + ", ".join(
+                f"`{c['log']}` {c['signal']} (p {c['p']:.2g}, variance x "
+                f"{c.get('variance_factor') or 1.0:.2f})"
+                for c in bad
+            )
+            + " are autocorrelated beyond what it describes (Ljung-Box, 20 lags, p < "
+            "0.01). "
+            + (
+                "Their noise variance was widened by the innovations' long-run variance "
+                "(Bartlett-weighted autocorrelations up to lag 20), so that the likelihood "
+                "counts the independent information they hold, not more. "
+                if widened
+                else "Not widened (`widen=False`, or a chain set up before the widening): "
+                "the intervals may be too narrow. "
+            )
+            + "Correlation left in the residuals is often a model error: see the "
+            "diagnosis."
         )
     rep.heading("Convergence")
     rep.text(

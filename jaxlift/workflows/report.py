@@ -458,6 +458,12 @@ def summarise(fit_res: dict, diag: dict, post: dict, tune: dict, *, quick: bool)
     }
 
 
+def gain_order(name: str) -> tuple[int, str]:
+    """P, I, D, N, K_aw first (the controller's order), then the rest by name."""
+    order = ("P", "I", "D", "N", "K_aw")
+    return (order.index(name), "") if name in order else (len(order), name)
+
+
 def _fmt(x: float | None, spec: str = ".3g") -> str:
     return "–" if x is None or not math.isfinite(x) else format(x, spec)
 
@@ -531,7 +537,7 @@ def write_summary(rep: Report, s: dict, held_out: Sequence[str]) -> None:
     )
     lines.append(
         f"**Recommended gains** ({s['gains_name']}, `tune/gains.json`): "
-        + ", ".join(f"{k} = {_fmt(val, '.4g')}" for k, val in g.items())
+        + ", ".join(f"{k} = {_fmt(g[k], '.4g')}" for k in sorted(g, key=gain_order))
         + better
         + "."
     )
