@@ -6,8 +6,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -176,38 +174,38 @@ def test_report_from_nominal_on_clean_logs_resumes_without_redoing(tmp_path):
 
 
 @pytest.mark.slow
-def test_report_command_quick_on_log_files(tmp_path):
-    """``jaxlift report --quick`` on CSV files, as a user runs it: exit 0, the page,
-    the quick caveat, a resumed second run; and a clear error for a missing file."""
+def test_report_command_quick_on_log_files(tmp_path, capsys):
+    """``jaxlift report --quick`` on CSV files, as a user runs it (in this process, so
+    that it reuses what the test above compiled): exit 0, the page, the quick caveat, a
+    resumed second run; and a clear error for a missing file."""
+    from jaxlift.cli.main import main
+
     logs = clean_logs((7, 8), (600.0, 1500.0), (0.2, 0.0))
     paths = []
     for lg in logs:
         paths.append(tmp_path / f"{lg.name}.csv")
         jl.write_log(paths[-1], lg)
     out = tmp_path / "report"
-    cmd = [sys.executable, "-m", "jaxlift", "report", *map(str, paths), "--quick", "--out",
-           str(out)]  # fmt: skip
-    first = subprocess.run(cmd, capture_output=True, text=True)
-    assert first.returncode == 0, first.stderr[-3000:]
-    assert "recommended gains:" in first.stdout
+    cmd = ["report", *map(str, paths), "--quick", "--out", str(out)]
+    assert main(cmd) == 0
+    first = capsys.readouterr()
+    assert "recommended gains: P = " in first.out
     html = (out / "report.html").read_text(encoding="utf-8")
     assert "Quick report" in html and "not confirmed" in html
     _assert_self_contained(html)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["posterior_mode"] == "laplace" and summary["quick"]
     # the screen's ranking, not a verdict; the Laplace interval holds the truth
+    assert summary["verdict"] == "not confirmed (quick)"
     lo, hi = summary["beta"]["HDI 5 %"], summary["beta"]["HDI 95 %"]
-    assert lo < TRUTH["beta"] < hi or abs(summary["beta"]["mean"] / TRUTH["beta"] - 1) < 0.01
+    assert lo < TRUTH["beta"] < hi, (lo, hi)
     assert (out / "provenance.json").exists()
-    second = subprocess.run(cmd, capture_output=True, text=True)
-    assert second.returncode == 0, second.stderr[-3000:]
-    assert second.stdout.count("finished before with the same inputs") == 4
-    missing = subprocess.run(
-        [sys.executable, "-m", "jaxlift", "report", str(tmp_path / "nope.csv"), "--out",
-         str(out)], capture_output=True, text=True,
-    )  # fmt: skip
-    assert missing.returncode == 2 and "nope.csv" in missing.stderr
-    assert "Traceback" not in missing.stderr
+    assert main(cmd) == 0
+    second = capsys.readouterr()
+    assert second.out.count("finished before with the same inputs") == 4
+    assert main(["report", str(tmp_path / "nope.csv"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "nope.csv" in err and "Traceback" not in err
 
 
 def test_quick_is_smaller_than_full():

@@ -101,6 +101,10 @@ def cmd_diagnose(args) -> int:
 
 
 def cmd_report(args) -> int:
+    from jaxlift.calibrate.parallel import cpu_cores
+    from jaxlift.cli.posterior import split_cpu
+
+    split_cpu(cpu_cores())  # the posterior stage's walkers on every core (before any JAX)
     from jaxlift.workflows.report import gain_order, run_report
 
     logs = read_logs(args.logs, args)

@@ -7,7 +7,7 @@ import argparse
 from ..calibrate.parallel import cpu_cores
 
 
-def _split_cpu(n: int) -> None:
+def split_cpu(n: int) -> None:
     """One XLA CPU device per core, so that the walkers run on all cores (one jitted
     batch split across the devices: ``make_log_prob(devices=...)``). Possible only
     before the process's first JAX operation; else the devices stay as they are."""
@@ -23,7 +23,7 @@ def cmd_posterior(args) -> int:
     import pathlib
 
     n_dev = cpu_cores() if args.devices is None else args.devices
-    _split_cpu(n_dev)
+    split_cpu(n_dev)
 
     import jax
 
