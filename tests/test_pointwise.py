@@ -73,7 +73,7 @@ def test_blocks_add_up_to_the_samplers_log_likelihood(problem):
     xr.testing.assert_identical(again["posterior_predictive"], groups["posterior_predictive"])
 
 
-@pytest.mark.slow
+@pytest.mark.extended  # CI time: test_report_command checks az.loo on a report's posterior
 def test_written_datatree_supports_loo_and_compare(problem, logs, tmp_path):
     # long enough that the thinned draws are distinct (a 60-step chain repeats rejected
     # positions, and PSIS cannot fit a tail of equal values)

@@ -7,8 +7,10 @@ import dataclasses
 import json
 import re
 
+import arviz as az
 import numpy as np
 import pytest
+import xarray as xr
 from test_posterior import TRUTH, synthetic_logs
 
 import jaxlift as jl
@@ -167,6 +169,12 @@ def test_report_from_nominal_on_clean_logs_resumes_without_redoing(tmp_path):
     assert all(s["stage_wall_s"][k] > 0 for k in ("fit", "diagnose", "posterior", "tune"))
     stored = json.loads((tmp_path / "summary.json").read_text())
     assert stored["verdict"] == "none"
+    # the posterior's DataTree weighs models (az.loo) without touching the chain file
+    tree = xr.open_datatree(tmp_path / "posterior" / "posterior.nc", engine="h5netcdf")
+    assert {"posterior", "prior", "observed_data", "posterior_predictive", "log_likelihood"} <= set(
+        tree.children
+    )
+    assert np.isfinite(az.loo(tree).elpd)
 
     again = run_report(fit_logs, [held], out_dir=tmp_path, budget=budget)
     assert again["stage_wall_s"] == {"fit": 0.0, "diagnose": 0.0, "posterior": 0.0, "tune": 0.0}
