@@ -118,7 +118,9 @@ def cmd_report(args) -> int:
         logs, val, out_dir=args.out, quick=args.quick, seed=args.seed,
         progress=lambda line: print(line, flush=True), progress_bar=True,
     )  # fmt: skip
-    print(f"verdict: {s['verdict']}")
+    if s["missing_effects"]:
+        print(f"missing effects, in order: {', '.join(s['missing_effects'])}")
+    print(f"final verdict: {s['verdict']}")
     if s["air"]:
         print(f"air: {s['air']['text']}")
     order = sorted(s["gains"], key=gain_order)
