@@ -12,6 +12,7 @@ The public surface. Enable float64 at the start of your program::
 
 from importlib.metadata import version as _version
 
+from .analysis.laws import LIBRARY, Law, explain
 from .calibrate.diagnose import (
     Diagnosis,
     EffectScreen,
@@ -25,6 +26,7 @@ from .calibrate.diagnose import (
 from .calibrate.experiment import PARAMETER_SETS
 from .calibrate.fit import evaluate, fit
 from .calibrate.result import FitResult
+from .calibrate.shape import LogShape, MissingShape, MissingTerms, estimate_missing_shape
 from .calibrate.solvers import LM, OptimistixLM
 from .control.closed_loop import ClosedLoopSolution, SampledFilterWarning, simulate_closed_loop
 from .control.controller import PID, AbstractController, ScheduledPID, load_gains, save_gains
@@ -161,6 +163,13 @@ __all__ = [
     "diagnose_iteratively",
     "evaluate",
     "fit",
+    "estimate_missing_shape",
+    "MissingShape",
+    "LogShape",
+    "MissingTerms",
+    "Law",
+    "LIBRARY",
+    "explain",
     "plant_signals_and_derivative",
     "run_diagnose",
     "run_fit",

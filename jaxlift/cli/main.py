@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import pathlib
 import sys
 from importlib.metadata import version
@@ -85,6 +86,7 @@ def cmd_diagnose(args) -> int:
         max_effects=args.max_effects,
         n_starts=args.starts,
         seed=args.seed,
+        shape=args.shape,
         progress=lambda line: print(line, flush=True),
     )
     from jaxlift.calibrate.diagnose import final_verdict, found_effects
@@ -96,6 +98,15 @@ def cmd_diagnose(args) -> int:
         print(f"final verdict: {final_verdict(steps)}")
     if final_verdict(steps) in ("undecided", "unexplained"):
         print(f"{final_verdict(steps)}: " + "; ".join(steps[-1].reasons))
+    with open(pathlib.Path(args.out) / "diagnosis.json", encoding="utf-8") as fh:
+        shape = json.load(fh).get("missing_shape")
+    if shape and "laws" in shape:
+        for sig in ("force", "flow"):
+            need = "needed" if shape["needed"][sig] else "not needed"
+            print(f"missing {sig} ({need}, evidence {shape['evidence'][sig]:.0f}): "
+                  f"{shape['laws'][sig]['law']}")  # fmt: skip
+    elif shape:
+        print(f"shape of what is missing: {shape['failed']}")
     print(f"wrote {args.out}/diagnosis.json, report.md, report.html, figures/")
     return 0
 
@@ -218,6 +229,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--starts", type=int, default=2, help="starting points of each fit")
     p.add_argument("--max-effects", type=int, default=3, help="at most this many effects added (3)")
+    p.add_argument(
+        "--shape", choices=("auto", "always", "never"), default="auto",
+        help="estimate the shape of what the final model misses (a force on the fork, a "
+        "flow into the cylinder, and a law for each): when the verdict is unexplained "
+        "(auto), always, or never",
+    )  # fmt: skip
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=cmd_diagnose)

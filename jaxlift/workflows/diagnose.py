@@ -15,11 +15,14 @@ from ..analysis.regimes import error_table, segment_log
 from ..calibrate.diagnose import diagnose, diagnose_iteratively, final_verdict, found_effects
 from ..calibrate.fit import estimate_x0_offsets
 from ..calibrate.result import FitResult
+from ..calibrate.shape import estimate_missing_shape
 from ..model.log import Log
+from ..model.solution import SimulationError
 from ..report.analysis_plots import plot_oscillations_vs_height
 from ..report.document import Report, json_safe
 from ..report.fit import plot_error_steps
 from ..report.plots import plot_overlay
+from ..report.shape import shape_section
 from .fit import chi2n, simulate_logs
 
 # ------------------------------------------------------------------ diagnose
@@ -73,12 +76,17 @@ def run_diagnose(
     n_starts: int = 2,
     seed: int = 0,
     base: FitResult | None = None,
+    shape: str = "auto",
     progress: Callable[[str], None] | None = None,
 ) -> list:
     """Diagnose (iteratively: add the winner and diagnose again until ``none``), write
     ``diagnosis.json``, figures and the report. Returns the list of diagnoses.
     ``base``: a fit of the baseline (or of a starting model: its effects) to begin
-    from, instead of fitting it first."""
+    from, instead of fitting it first. ``shape``: estimate the shape of what the final
+    model misses (:func:`~jaxlift.estimate_missing_shape`) when the verdict is
+    ``unexplained`` (``"auto"``), always (``"always"``) or never (``"never"``)."""
+    if shape not in ("auto", "always", "never"):
+        raise ValueError(f"shape must be 'auto', 'always' or 'never', got {shape!r}")
 
     if iterate:
         steps = diagnose_iteratively(
@@ -257,6 +265,17 @@ def run_diagnose(
         caption="Signature numbers: sinking speed in holds (leakage), share of slow "
         "motion with speed near zero (stick-slip); measured vs model.",
     )
+    final_fit = steps[-1].winner_fit or steps[-1].base_fit
+    if shape == "always" or (shape == "auto" and data["final_verdict"] == "unexplained"):
+        (progress or (lambda s: None))("estimating the shape of what is missing")
+        try:
+            est = estimate_missing_shape(final_fit, logs, progress=progress)
+        except SimulationError as err:  # reported, never fatal to the diagnosis
+            data["missing_shape"] = {"failed": str(err)}
+            rep.heading("The shape of what is missing")
+            rep.text(f"Could not be estimated: {err}")
+        else:
+            data["missing_shape"] = shape_section(rep, est, figs)
     with open(out / "diagnosis.json", "w", encoding="utf-8") as fh:
         json.dump(json_safe(data), fh, indent=2)
         fh.write("\n")
