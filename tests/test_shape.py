@@ -4,54 +4,15 @@ synthetic logs -- a force law, a flow law and an input nonlinearity, none of the
 the eight -- against a target computed from the true and the fitted model's vector
 fields (not from the code under test)."""
 
-from typing import ClassVar
-
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
+from outside_laws import DutySaturation, EarlyRelief, SealFriction, missing_targets
 
 import jaxlift as jl
 from jaxlift.analysis.laws import dependence, explain
 from jaxlift.calibrate.fit import fit
-from jaxlift.model.build import all_param_infos, make_effects, with_params
 from jaxlift.model.sequences import ramped_sequence
-from jaxlift.model.vector_field import signals_and_derivative
-
-
-# ---------------------------------------------------------------- laws outside the eight
-class SealFriction(jl.AbstractStatelessEffect):
-    """Seal friction that grows with the pressure on the seal (a force law)."""
-
-    mu: float = 6e-5  # N/Pa
-    name: ClassVar[str] = "test_seal_friction"
-
-    def extra_friction(self, plant, z, sig):
-        return self.mu * sig.p * jnp.tanh(sig.v / plant.v_eps)
-
-
-class EarlyRelief(jl.AbstractStatelessEffect):
-    """A pressure relief valve that cracks early and bleeds flow above p_c (a flow law)."""
-
-    k: float = 1.5e-12  # m^3/s/Pa
-    p_c: float = 13e6  # Pa
-    name: ClassVar[str] = "test_early_relief"
-
-    def extra_flow(self, plant, z, sig):
-        dp = sig.p - self.p_c
-        return -self.k * jnp.where(dp > 0, dp, 0.0)
-
-
-class DutySaturation(jl.AbstractStatelessEffect):
-    """The motor drive saturates at a duty of u_sat (an input nonlinearity)."""
-
-    u_sat: float = 0.45
-    name: ClassVar[str] = "test_duty_saturation"
-
-    def motor_offset(self, plant, z, sig):
-        capped = plant.motor_map(sig.x, plant.voltage(jnp.minimum(sig.u, self.u_sat)))
-        return capped - plant.motor_map(sig.x, plant.voltage(sig.u))
-
 
 SECTIONS = {
     "thesis-like": [
@@ -88,24 +49,8 @@ def _log(law, load, seed, x0, sections, name):
 
 
 def _targets(law, result, shape_log, inputs):
-    """What the fitted model lacks along the estimated trajectory: the force [N] and
-    flow [m^3/s] that make its derivatives those of the true model (true plant +
-    ``law``), from the two vector fields alone."""
-    effs = make_effects(result.effects)
-    own = {k: v for k, v in result.params.items() if k in all_param_infos(effs)}
-    pf, ef = with_params(jl.Plant(), effs, own)
-
-    def one(t, x, v, p):
-        y = jnp.stack([x, v, p])
-        _, d_true = signals_and_derivative(t, y, jl.Plant(), (law,), inputs)
-        s_fit, d_fit = signals_and_derivative(t, y, pf, ef, inputs)
-        mass = s_fit.m_load + pf.stage_mass(x)
-        cap = pf.volume(x) / pf.beta
-        return mass * (d_true[1] - d_fit[1]), cap * (d_true[2] - d_fit[2])
-
     lg = shape_log
-    F, Q = jax.vmap(one)(*(jnp.asarray(a) for a in (lg.t, lg.x, lg.v, lg.p)))
-    return np.asarray(F), np.asarray(Q)
+    return missing_targets(law, result.params, result.effects, inputs, lg.t, lg.x, lg.v, lg.p)
 
 
 # ---------------------------------------------------------------- sparse regression

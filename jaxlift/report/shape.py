@@ -133,3 +133,19 @@ def shape_section(rep: Report, shape: MissingShape, figs: pathlib.Path) -> dict:
         )
     return {**shape.as_dict(), "dominant": shape.dominant,
             "laws": {k: v.as_dict() for k, v in laws.items()}}  # fmt: skip
+
+
+def write_shape_csv(shape: MissingShape, path) -> str:
+    """The estimated signals and the states they act on, every sample of every log:
+    ``log, time_s, force_N, force_sd_N, flow_m3s, flow_sd_m3s, height_m, speed_mps,
+    pressure_pa, accel_mps2, pwm``."""
+    cols = ("force", "force_sd", "flow", "flow_sd", "x", "v", "p", "a", "u")
+    head = ("log,time_s,force_N,force_sd_N,flow_m3s,flow_sd_m3s,height_m,speed_mps,"
+            "pressure_pa,accel_mps2,pwm")  # fmt: skip
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write(head + "\n")
+        for lg in shape.logs:
+            arr = np.stack([lg.t, *(getattr(lg, c) for c in cols)], axis=1)
+            for row in arr:
+                fh.write(lg.name + "," + ",".join(f"{v:.9g}" for v in row) + "\n")
+    return os.fspath(path)

@@ -22,7 +22,7 @@ from ..report.analysis_plots import plot_oscillations_vs_height
 from ..report.document import Report, json_safe
 from ..report.fit import plot_error_steps
 from ..report.plots import plot_overlay
-from ..report.shape import shape_section
+from ..report.shape import shape_section, write_shape_csv
 from .fit import chi2n, simulate_logs
 
 # ------------------------------------------------------------------ diagnose
@@ -198,13 +198,15 @@ def run_diagnose(
                     "dBIC (refit)": s.delta_bic,
                     "held-out chi2/N before": s.heldout_chi2_before,
                     "after": s.heldout_chi2_after,
+                    "share of error removed": s.explained_share,
                     "signature": SIGNATURES.get(s.effect, ""),
                 }
                 for s in d.ranking
             ],
             caption="Ranking: confirmed candidates by BIC change (negative = better), then "
             "the others by score. Verdict = largest BIC drop beyond 10 whose held-out "
-            "chi2 also falls by more than 10 (effective samples).",
+            "chi2 also falls by more than 10 (effective samples) and, where the error is "
+            "far above the noise, that removes at least 25 % of it.",
         )
     # where the final model's error remains: per regime and per stage, each log
     rep.heading("Where the error remains")
@@ -276,6 +278,7 @@ def run_diagnose(
             rep.text(f"Could not be estimated: {err}")
         else:
             data["missing_shape"] = shape_section(rep, est, figs)
+            write_shape_csv(est, out / "missing_shape.csv")
     with open(out / "diagnosis.json", "w", encoding="utf-8") as fh:
         json.dump(json_safe(data), fh, indent=2)
         fh.write("\n")

@@ -1,0 +1,79 @@
+"""Laws outside the eight candidate effects, for the tests and the study of the
+shape of what is missing (``tests/test_shape.py``, ``studies/outside_the_eight.py``): a
+force law, a flow law and an input nonlinearity, written as a user writes an effect.
+"""
+
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxlift as jl
+from jaxlift.model.build import all_param_infos, make_effects, with_params
+from jaxlift.model.vector_field import signals_and_derivative
+
+
+class SealFriction(jl.AbstractStatelessEffect):
+    """Seal friction that grows with the pressure on the seal (a force law)."""
+
+    mu: float = 6e-5  # N/Pa
+    name: ClassVar[str] = "test_seal_friction"
+
+    def extra_friction(self, plant, z, sig):
+        return self.mu * sig.p * jnp.tanh(sig.v / plant.v_eps)
+
+
+class EarlyRelief(jl.AbstractStatelessEffect):
+    """A pressure relief valve that cracks early and bleeds flow above p_c (a flow law)."""
+
+    k: float = 1.5e-12  # m^3/s/Pa
+    p_c: float = 13e6  # Pa
+    name: ClassVar[str] = "test_early_relief"
+
+    def extra_flow(self, plant, z, sig):
+        dp = sig.p - self.p_c
+        return -self.k * jnp.where(dp > 0, dp, 0.0)
+
+
+class DutySaturation(jl.AbstractStatelessEffect):
+    """The motor drive saturates at a duty of u_sat (an input nonlinearity)."""
+
+    u_sat: float = 0.45
+    name: ClassVar[str] = "test_duty_saturation"
+
+    def motor_offset(self, plant, z, sig):
+        capped = plant.motor_map(sig.x, plant.voltage(jnp.minimum(sig.u, self.u_sat)))
+        return capped - plant.motor_map(sig.x, plant.voltage(sig.u))
+
+
+LAWS = {
+    "seal_friction": SealFriction,
+    "early_relief": EarlyRelief,
+    "duty_saturation": DutySaturation,
+}
+
+
+def missing_targets(
+    law, params, effects, inputs, t, x, v, p, *, true_plant=None, base_effects=()
+):
+    """What a fitted model (``params``, ``effects``) lacks along a trajectory (``t, x,
+    v, p``): the force [N] and flow [m^3/s] that make its derivatives those of the true
+    model (``true_plant``, default nominal, + ``base_effects`` + ``law``), from the two
+    vector fields alone (not from the shape estimate under test)."""
+    true_plant = jl.Plant() if true_plant is None else true_plant
+    effs = make_effects(effects)
+    own = {k: val for k, val in params.items() if k in all_param_infos(effs)}
+    pf, ef = with_params(jl.Plant(), effs, own)
+    true_effects = (*base_effects, law)
+
+    def one(tk, xk, vk, pk):
+        y = jnp.stack([xk, vk, pk])
+        _, d_true = signals_and_derivative(tk, y, true_plant, true_effects, inputs)
+        s_fit, d_fit = signals_and_derivative(tk, y, pf, ef, inputs)
+        mass = s_fit.m_load + pf.stage_mass(xk)
+        cap = pf.volume(xk) / pf.beta
+        return mass * (d_true[1] - d_fit[1]), cap * (d_true[2] - d_fit[2])
+
+    F, Q = jax.vmap(one)(*(jnp.asarray(a) for a in (t, x, v, p)))
+    return np.asarray(F), np.asarray(Q)
