@@ -45,6 +45,7 @@ import jax
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 import numpy as np
+import pandas as pd
 from jaxtyping import Array, Float
 
 from ..analysis.laws import Law, dependence, explain
@@ -330,8 +331,6 @@ class MissingShape:
 
     def table(self):
         """Per signal: evidence, whether needed, size (rms) and the law (pandas)."""
-        import pandas as pd
-
         laws = self.laws()
         rows = []
         for sig in ("force", "flow"):
