@@ -106,6 +106,18 @@ res = run_posterior(
 print("converged:", res["converged"], "after", res["steps"], "steps")
 
 # %% [markdown]
+# `res` is a `jl.PosteriorResult`: it reads like the dict of `posterior.json`, shows as
+# a table here, and holds the ArviZ DataTree (`res.datatree`) with the posterior, the
+# prior, the observed data, the posterior predictive and the pointwise log-likelihood
+# (for `az.loo` and `az.compare`).
+
+# %%
+res  # noqa: B018 (a notebook cell shows its last value)
+
+# %%
+print("DataTree groups:", ", ".join(sorted(res.datatree.children)))
+
+# %% [markdown]
 # ## The posterior
 # Mean, standard deviation, 90 % highest-density interval, the autocorrelation time
 # tau and ESS. (R-hat over the walkers of one ensemble is not a valid test: they are

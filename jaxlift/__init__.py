@@ -92,7 +92,7 @@ from .posterior.sampler import SamplerRun, posterior_samples, sample_posterior
 from .report.tuning import robustness_report
 from .workflows.diagnose import run_diagnose
 from .workflows.fit import model_vs_measurement, run_fit
-from .workflows.posterior import run_posterior
+from .workflows.posterior import PosteriorResult, run_posterior
 from .workflows.report import ReportBudget, run_report
 from .workflows.simulate import run_simulate
 from .workflows.tune import TuneRun, calibrated_model, run_control_simulate, run_tune
@@ -131,6 +131,7 @@ __all__ = [
     "posterior_samples",
     "prepare_posterior",
     "run_posterior",
+    "PosteriorResult",
     "sample_posterior",
     "PID",
     "AbstractController",

@@ -54,9 +54,7 @@ LAWS = {
 }
 
 
-def missing_targets(
-    law, params, effects, inputs, t, x, v, p, *, true_plant=None, base_effects=()
-):
+def missing_targets(law, params, effects, inputs, t, x, v, p, *, true_plant=None, base_effects=()):
     """What a fitted model (``params``, ``effects``) lacks along a trajectory (``t, x,
     v, p``): the force [N] and flow [m^3/s] that make its derivatives those of the true
     model (``true_plant``, default nominal, + ``base_effects`` + ``law``), from the two

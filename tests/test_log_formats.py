@@ -88,21 +88,22 @@ def test_mdf4_and_parquet_of_the_shipped_log_read_like_the_csv(tmp_path, shipped
 @pytest.mark.slow
 def test_mdf4_and_parquet_of_a_shipped_log_give_the_same_fit_as_the_csv(tmp_path, shipped, capsys):
     """The acceptance of the log formats, as a user meets it: ``jaxlift fit`` on the
-    CSV, an MDF 4 and a Parquet copy of a shipped log prints the same parameters (a
-    small budget: the dynamic set from nominal, one start)."""
+    CSV, an MDF 4 and a Parquet copy of a shipped log prints the same fit and writes
+    the same parameters (one start per stage: the CI's time)."""
     mf4 = write_mdf(tmp_path / "lift_500kg.mf4", shipped.time_s, log_channels(shipped))
     parquet = tmp_path / "lift_500kg.parquet"
     pq.write_table(pa.table({c: shipped.column(c) for c in shipped.columns}), parquet)
     printed, fitted = {}, {}
     for fmt, path in (("csv", shipped.path), ("mf4", mf4), ("parquet", parquet)):
         out = tmp_path / fmt
-        rc = main(["fit", str(path), "--free", "dynamic", "--starts", "1", "--joint",
-                   "--out", str(out)])  # fmt: skip
-        assert rc in (0, 1), fmt
+        rc = main(["fit", str(path), "--starts", "1", "--out", str(out)])
+        assert rc == 0, fmt
         text = capsys.readouterr().out
-        printed[fmt] = [ln for ln in text.splitlines() if re.match(r"\s*(beta|cf_|d\b)", ln)]
+        # the fit's lines (chi2/N per stage and per log), without the wall-clock times
+        printed[fmt] = [re.sub(r"[0-9.]+ s$", "", ln) for ln in text.splitlines()
+                        if "chi2/N" in ln]  # fmt: skip
         fitted[fmt] = json.loads((out / "params.json").read_text())
-    assert printed["csv"], "the fit printed no parameters"
+    assert len(printed["csv"]) >= 2 and any("-> " in ln for ln in printed["csv"])
     assert printed["mf4"] == printed["csv"] and printed["parquet"] == printed["csv"]
     assert fitted["mf4"] == fitted["csv"] and fitted["parquet"] == fitted["csv"]
 

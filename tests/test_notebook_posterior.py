@@ -13,3 +13,9 @@ def test_03_posterior(tmp_path, monkeypatch):
         o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
     )
     assert "gas by volume" in text and "converged: False after 30 steps" in text
+    # the result object shows as a table, and carries the DataTree for ArviZ
+    html = "".join(o.get("data", {}).get("text/html", "") for c in nb.cells
+                   if c.cell_type == "code" for o in c.get("outputs", []))  # fmt: skip
+    assert "<table" in html and "beta" in html
+    for group in ("log_likelihood", "observed_data", "posterior", "posterior_predictive", "prior"):
+        assert group in text.split("DataTree groups:")[1].splitlines()[0], group

@@ -81,9 +81,10 @@ def test_a_law_outside_the_eight_is_unexplained_not_named(tmp_path):
     finally:
         EFFECTS.pop("turbulent_drag")
     out = tmp_path / "diag"
-    # at most one effect added (two diagnosis steps): the CI's time; without the bound
-    # the iteration adds stand-ins that each explain a few per cent (measured: hose
-    # compliance 21 %, then a mast mode 5 %), still ending `unexplained`
+    # at most one effect added (two diagnosis steps): the CI's time. Before a candidate
+    # had to remove 25 % of the error (MIN_SHARE), the iteration added stand-ins that
+    # each explained a few per cent (measured: hose compliance 21 %, then a mast mode
+    # 5 %), still ending `unexplained`
     argv = ["diagnose", *logs, "--validate", held, "--max-effects", "1", "--out", str(out)]
     # in its own process, as a user runs it (and without the test session's memory)
     proc = subprocess.run([sys.executable, "-m", "jaxlift", *argv], capture_output=True,

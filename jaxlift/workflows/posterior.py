@@ -4,12 +4,15 @@ sampler to convergence, and write the chain, the ArviZ file, the summary and the
 
 from __future__ import annotations
 
+import html
 import json
 import os
 import pathlib
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
+import pandas as pd
+import xarray as xr
 
 from ..model.build import make_effects
 from ..model.constants import BETA_OIL
@@ -23,6 +26,51 @@ from ..posterior.sampler import sample_posterior
 from ..report.posterior import write_outputs
 
 # ------------------------------------------------------------------ whole job
+
+
+class PosteriorResult(Mapping):
+    """What :func:`run_posterior` found: the content of ``posterior.json`` (read it like
+    a dict: ``res["converged"]``, ``res["summary"]``, ``res["air"]``, ...), the
+    posterior as an ArviZ DataTree (:attr:`datatree`: ``posterior``, ``prior``,
+    ``observed_data``, ``posterior_predictive``, ``log_likelihood``; ready for
+    ``az.loo``/``az.compare``), the summary as a pandas table (:meth:`table`), and the
+    folder it was written to (:attr:`out_dir`)."""
+
+    def __init__(self, data: Mapping, out_dir: str | os.PathLike):
+        self._data = dict(data)
+        self.out_dir = pathlib.Path(out_dir)
+        self._tree = None
+
+    def __getitem__(self, key):
+        return self._data[key]
+
+    def __iter__(self):
+        return iter(self._data)
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    @property
+    def datatree(self) -> xr.DataTree:
+        """The posterior (``posterior.nc``), loaded into memory on first use."""
+        if self._tree is None:
+            with xr.open_datatree(self.out_dir / "posterior.nc", engine="h5netcdf") as tree:
+                self._tree = tree.load()
+        return self._tree
+
+    def table(self) -> pd.DataFrame:
+        """Per parameter: mean, sd, 90 % HDI, unit, tau, ESS (pandas)."""
+        return pd.DataFrame(self._data["summary"]).set_index("parameter")
+
+    def _repr_html_(self) -> str:
+        air = self._data.get("air") or {}
+        head = (
+            f"<p>{'converged' if self._data.get('converged') else 'NOT converged'} after "
+            f"{self._data.get('steps')} steps; effects: "
+            f"{', '.join(self._data.get('effects') or []) or 'none'}</p>"
+        )
+        text = f"<p>{html.escape(air['text'])}</p>" if air.get("text") else ""
+        return head + self.table().to_html(float_format=lambda v: f"{v:.4g}") + text
 
 
 def run_posterior(
@@ -48,7 +96,7 @@ def run_posterior(
     devices: int | None = None,
     progress: Callable[[str], None] | None = None,
     progress_bar: bool = False,
-) -> dict:
+) -> PosteriorResult:
     """The whole job behind ``jaxlift posterior``: set up (least squares), sample (or
     resume the chain in ``out_dir``), summarise and report.
 
@@ -65,8 +113,9 @@ def run_posterior(
     (:func:`~jaxlift.report.posterior.write_outputs`). ``conditioning``: ``"marginal"``
     (default: the motor set and the initial-height offsets move with the sampled
     parameters, :func:`~jaxlift.posterior.problem.prepare_posterior`) or
-    ``"conditional"`` (held at their least-squares values). Returns the content of
-    ``posterior.json``."""
+    ``"conditional"`` (held at their least-squares values). Returns a
+    :class:`PosteriorResult` (the content of ``posterior.json``, read like a dict, and
+    the ArviZ DataTree)."""
 
     say = progress or (lambda _line: None)
     out = pathlib.Path(out_dir)
@@ -136,7 +185,8 @@ def run_posterior(
         f"{run.iteration} steps, max tau {np.max(run.tau):.1f}: "
         + ("converged" if run.converged else "NOT converged")
     )
-    return write_outputs(
+    data = write_outputs(
         problem, run, logs, out, n_predictive=n_predictive, n_loglik=n_loglik, seed=seed,
         beta_oil=beta_oil,
     )  # fmt: skip
+    return PosteriorResult(data, out)
