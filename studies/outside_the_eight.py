@@ -128,7 +128,7 @@ def write_case(case: dict, case_dir: pathlib.Path) -> None:
         sol = jl.simulate(plant, allfx, inputs, rtol=1e-8, atol=(1e-9, 1e-9, 1e-2))
         log = jl.to_log(sol, inputs, jl.MeasurementModel(), jax.random.key(spec["seed"] % 2**31),
                         with_pressure=True, name=spec["name"])  # fmt: skip
-        jl.write_log(log, path)
+        jl.write_log(path, log)
     (case_dir / "case.json").write_text(json.dumps(case, indent=1))
 
 

@@ -42,6 +42,33 @@ LIBRARY: dict[str, tuple[Callable[[Mapping[str, np.ndarray]], np.ndarray], str]]
     "t": (lambda s: s["t"], "s"),
 }
 
+#: The terms tried for each signal: those with a physical reading for it. A force: an
+#: offset (a weight), Coulomb and viscous friction and their growth (``v|v|``: a
+#: turbulent loss felt on the fork; ``v^3``, ``v^5``), a hydraulic area error (``p``),
+#: seal friction that grows with pressure or with extension (``p sign(v)``,
+#: ``x sign(v)``), a height-dependent force (``x``), an inertia error (``a``), a drift
+#: (``t``), the input (``u``). A flow: an offset, leaks (``p``: laminar, ``sqrt(p)``:
+#: orifice), a speed-dependent loss (``v``, ``v|v|``), a height-dependent one (``x``),
+#: the input (``u``: a pump or drive nonlinearity) and a drift (``t``).
+LIBRARIES: dict[str, tuple[str, ...]] = {
+    "force": (
+        "1",
+        "sign(v)",
+        "v",
+        "v|v|",
+        "v^3",
+        "v^5",
+        "p",
+        "p sign(v)",
+        "x",
+        "x sign(v)",
+        "u",
+        "a",
+        "t",
+    ),  # fmt: skip
+    "flow": ("1", "sign(v)", "v", "v|v|", "p", "sqrt(p)", "x", "u", "t"),
+}
+
 #: Terms the baseline model already carries, per signal: a coefficient on one of these
 #: is a shift of that parameter (it absorbed part of the missing law), not a new law.
 MODEL_TERMS: dict[str, dict[str, str]] = {
@@ -122,11 +149,14 @@ def explain(
         states: the states at the same samples (``t, x, v, p, a, u``; SI units).
         name: ``"force"`` or ``"flow"`` (which model terms to flag as shifts).
         weights: per-sample weights (e.g. 1 / the estimate's variance); default 1.
-        library: terms to use (default :data:`LIBRARY`).
+        library: terms to use (default: those of :data:`LIBRARIES` for ``name``, all
+            of :data:`LIBRARY` for another name).
         max_terms: the largest subset tried.
         min_gain: the R² a further term must add to be kept.
     """
-    lib = dict(LIBRARY if library is None else library)
+    if library is None:
+        library = {k: LIBRARY[k] for k in LIBRARIES.get(name, tuple(LIBRARY))}
+    lib = dict(library)
     y = np.asarray(signal, float)
     w = np.ones_like(y) if weights is None else np.asarray(weights, float)
     if y.ndim != 1 or w.shape != y.shape:
