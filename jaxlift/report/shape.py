@@ -50,35 +50,38 @@ def plot_shape_vs_time(shape: MissingShape, signal: str, path) -> str:
     return _save(fig, path)
 
 
+#: The state each library term is read against (for the figures).
+_TERM_STATE = {"1": "t", "sign(v)": "v", "v": "v", "v|v|": "v", "v^3": "v", "v^5": "v",
+               "p": "p", "p sign(v)": "p", "sqrt(p)": "p", "x": "x", "x sign(v)": "x",
+               "u": "u", "a": "a", "t": "t"}  # fmt: skip
+
+
 def plot_shape_vs_state(shape: MissingShape, signal: str, law: Law, path) -> str:
-    """Left: ``signal`` against the state its one-state dependence explains best, with
-    the law's prediction. Right: the one-state dependence curves of every state."""
+    """``signal`` against each state (scatter, lifting in blue, the rest in grey), with
+    the law's prediction (red); the leading term's state first. Each panel's title
+    gives the share of the signal's variance that state's binned mean explains alone
+    (on a trajectory, a state that changes slowly also stands for time)."""
     dep = shape.dependence(signal)
-    best = max(dep, key=lambda s: dep[s]["r2"])
-    y, sd, st = shape.pooled(signal)
+    y, _, st = shape.pooled(signal)
     pred = law.predict(st)
     k = _SCALE[signal]
-    fig, axes = new_figure(1, 2, figsize=(11, 4))
-    ax = axes[0]
-    ks = _STATE_SCALE.get(best, 1.0)
-    ax.scatter(st[best] * ks, y * k, s=3, alpha=0.3, color="C0", label="estimate")
-    order = np.argsort(st[best])
-    ax.scatter(st[best][order] * ks, pred[order] * k, s=2, color="C3", alpha=0.5,
-               label=f"law (R² {law.r2:.2f})")  # fmt: skip
-    ax.set_xlabel(_STATE_LABEL.get(best, best))
-    ax.set_ylabel(_LABEL[signal])
-    ax.set_title(f"against {best} (explains {dep[best]['r2']:.0%} alone)", fontsize=9)
-    ax.legend(fontsize=8, markerscale=4)
-    ax = axes[1]
-    for name, d in sorted(dep.items(), key=lambda kv: -kv[1]["r2"]):
-        c = np.asarray(d["centers"], float)
-        rng = np.ptp(c) or 1.0
-        ax.plot((c - c.min()) / rng, np.asarray(d["mean"]) * k, marker=".",
-                label=f"{name} (R² {d['r2']:.2f})")  # fmt: skip
-    ax.set_xlabel("state, scaled to its range [0, 1]")
-    ax.set_ylabel(_LABEL[signal] + ", binned mean")
-    ax.set_title("one-state dependence", fontsize=9)
-    ax.legend(fontsize=8)
+    first = _TERM_STATE.get(law.leading, "t")
+    order = [first] + [n for n in ("v", "p", "x", "u", "a", "t") if n != first]
+    fig, axes = new_figure(2, 3, figsize=(12, 6.5))
+    moving = np.abs(st["v"]) > 2e-3
+    for ax, name in zip(axes.ravel(), order):
+        ks = _STATE_SCALE.get(name, 1.0)
+        xs = st[name] * ks
+        ax.scatter(xs[~moving], y[~moving] * k, s=2, color="0.6", alpha=0.4, label="at rest")
+        ax.scatter(xs[moving], y[moving] * k, s=2, color="C0", alpha=0.4, label="moving")
+        ax.scatter(xs, pred * k, s=1, color="C3", alpha=0.5, label="law")
+        r2 = dep.get(name, {}).get("r2", float("nan"))
+        lead = " (leading term)" if name == first else ""
+        ax.set_title(f"{name}{lead}: binned mean explains {r2:.0%}", fontsize=9)
+        ax.set_xlabel(_STATE_LABEL.get(name, name))
+        ax.set_ylabel(_LABEL[signal])
+    axes[0, 0].legend(fontsize=7, markerscale=4)
+    fig.suptitle(f"missing {signal} against the states; law: R² {law.r2:.2f}", fontsize=10)
     return _save(fig, path)
 
 
@@ -128,8 +131,8 @@ def shape_section(rep: Report, shape: MissingShape, figs: pathlib.Path) -> dict:
                    f"Estimated missing {sig} against time (grey: speed).")  # fmt: skip
         rep.figure(
             plot_shape_vs_state(shape, sig, laws[sig], figs / f"missing_{sig}_state.png"),
-            f"Missing {sig} against its best explanatory state, with the law; right: "
-            "its binned mean against each state.",
+            f"Missing {sig} against each state (the law's leading term's first), with "
+            "the law's prediction in red.",
         )
     return {**shape.as_dict(), "dominant": shape.dominant,
             "laws": {k: v.as_dict() for k, v in laws.items()}}  # fmt: skip
