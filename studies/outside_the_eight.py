@@ -209,6 +209,18 @@ def correct(r: dict) -> bool:
     return r["final_verdict"] == "unexplained"
 
 
+def _size(v) -> str:
+    return "" if v is None else f"{v:.3g}"
+
+
+def _right(r: dict) -> str:
+    """yes / no, or "inactive" for a law the logs never brought into play (baseline
+    chi2/N below 1.1: e.g. a relief valve that the loads never crack)."""
+    if r["law"] and r.get("exit_code") == 0 and r.get("baseline_chi2n", 2.0) < 1.1:
+        return "inactive" + (" (none)" if r["final_verdict"] == "none" else "")
+    return "yes" if correct(r) else "no"
+
+
 def cmd_run(args) -> int:
     out = pathlib.Path(args.out)
     for case in cases():
@@ -239,11 +251,11 @@ def cmd_report(args) -> int:
     for r in results:
         lead = (r.get("leading") or {}).get(r.get("signal") or r.get("dominant") or "", "")
         lines.append(
-            f"| {r['case_id']} | {r['law'] or 'null'} | {r['size'] or ''} | {r['beside'] or ''}"
+            f"| {r['case_id']} | {r['law'] or 'null'} | {_size(r['size'])} | {r['beside'] or ''}"
             f" | {r.get('baseline_chi2n', float('nan')):.3g} | {r.get('final_verdict', 'crash')}"
             f" | {', '.join(r.get('found', [])) or '—'} | {r.get('dominant', '')}"
             f" | {r.get('correlation', float('nan')):.3f} | {lead}"
-            f" | {'yes' if correct(r) else 'no'} | {r['wall_s']:.0f} |"
+            f" | {_right(r)} | {r['wall_s']:.0f} |"
         )
     laws = [r for r in results if r["law"]]
     nulls = [r for r in results if not r["law"]]
