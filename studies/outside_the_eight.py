@@ -241,6 +241,9 @@ def cmd_report(args) -> int:
         p = out / case["case_id"] / "result.json"
         if p.exists():
             r = json.loads(p.read_text())
+            if args.rescore and r.get("exit_code") == 0:  # the targets computed again
+                r.update(evaluate(case, out / case["case_id"] / "diagnosis"))
+                p.write_text(json.dumps(r, indent=1, default=float))
             results.append(r)
             (to / "cases" / f"{case['case_id']}.json").write_text(json.dumps(r, indent=1))
     lines = ["# Laws outside the eight: diagnosis and shape", "",
@@ -283,6 +286,11 @@ def main(argv=None) -> int:
     q = sub.add_parser("report")
     q.add_argument("--out", required=True)
     q.add_argument("--to", required=True)
+    q.add_argument(
+        "--rescore",
+        action="store_true",
+        help="evaluate the finished cases again (after a change of the targets)",
+    )
     q.set_defaults(func=cmd_report)
     args = p.parse_args(argv)
     return args.func(args)

@@ -58,20 +58,31 @@ def missing_targets(law, params, effects, inputs, t, x, v, p, *, true_plant=None
     """What a fitted model (``params``, ``effects``) lacks along a trajectory (``t, x,
     v, p``): the force [N] and flow [m^3/s] that make its derivatives those of the true
     model (``true_plant``, default nominal, + ``base_effects`` + ``law``), from the two
-    vector fields alone (not from the shape estimate under test)."""
+    vector fields alone (not from the shape estimate under test): the difference of
+    the accelerations divided by the fitted model's acceleration per newton, and of the
+    pressure rates divided by its pressure rate per m^3/s (the inverse mass and
+    capacitance, effects such as entrained air or a mast mode included)."""
     true_plant = jl.Plant() if true_plant is None else true_plant
     effs = make_effects(effects)
     own = {k: val for k, val in params.items() if k in all_param_infos(effs)}
     pf, ef = with_params(jl.Plant(), effs, own)
     true_effects = (*base_effects, law)
+    n_base = 3 + sum(e.n_states for e in ef)
 
     def one(tk, xk, vk, pk):
         y = jnp.stack([xk, vk, pk])
         _, d_true = signals_and_derivative(tk, y, true_plant, true_effects, inputs)
-        s_fit, d_fit = signals_and_derivative(tk, y, pf, ef, inputs)
-        mass = s_fit.m_load + pf.stage_mass(xk)
-        cap = pf.volume(xk) / pf.beta
-        return mass * (d_true[1] - d_fit[1]), cap * (d_true[2] - d_fit[2])
+
+        def fitted(w):
+            extra = jl.MissingTerms(jnp.stack([tk - 1.0, tk + 1.0]), jnp.stack([w[0], w[0]]),
+                                    jnp.stack([w[1], w[1]]))  # fmt: skip
+            yy = jnp.concatenate([y, jnp.zeros(n_base - 3)])
+            d = signals_and_derivative(tk, yy, pf, (*ef, extra), inputs)[1]
+            return jnp.stack([d[1], d[2]])
+
+        d_fit, per_unit = jax.jvp(fitted, (jnp.zeros(2),), (jnp.ones(2),))
+        # the force moves only the acceleration, the flow only the pressure rate
+        return (d_true[1] - d_fit[0]) / per_unit[0], (d_true[2] - d_fit[1]) / per_unit[1]
 
     F, Q = jax.vmap(one)(*(jnp.asarray(a) for a in (t, x, v, p)))
     return np.asarray(F), np.asarray(Q)
