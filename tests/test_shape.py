@@ -87,9 +87,8 @@ def test_a_hidden_force_is_recovered_when_the_parameters_are_right():
     the noise."""
     law = SealFriction()
     made = [_log(law, m, s, 0.3, "steps", f"seal_{m:.0f}") for m, s in ((400.0, 1), (1400.0, 2))]
-    truth = jl.FitResult.__new__(jl.FitResult)  # only params, effects, offsets are read
-    truth.params = {k: float(v) for k, v in jl.get_params(jl.Plant()).items()}
-    truth.effects, truth.x0_offsets = [], {}
+    truth = jl.FitResult.__new__(jl.FitResult)  # only the model and offsets are read
+    truth.model, truth.effects, truth.x0_offsets = jl.Model.build(), [], {}
     shape = jl.estimate_missing_shape(truth, [lg for lg, _ in made])
     assert shape.needed == {"force": True, "flow": False}, (shape.evidence, shape.shares)
     assert shape.dominant == "force"

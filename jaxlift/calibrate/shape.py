@@ -49,15 +49,13 @@ import pandas as pd
 from jaxtyping import Array, Float
 
 from ..analysis.laws import Law, dependence, explain
-from ..model.build import all_param_infos, make_effects, with_params
 from ..model.effects import AbstractStatelessEffect, Signals
 from ..model.inputs import Inputs
 from ..model.log import Log
-from ..model.measurement import MeasurementModel
-from ..model.plant import Plant
 from ..model.simulate import simulate
 from ..model.solution import SimulationError
 from ..model.vector_field import canonical_effects, signals_and_derivative
+from .experiment import make_experiments
 from .result import FitResult
 
 #: Reference sizes of the two signals (the state-space scaling; not priors).
@@ -360,12 +358,6 @@ class MissingShape:
         }
 
 
-def _model(result: FitResult):
-    effs = make_effects(result.effects)
-    own = {k: v for k, v in result.params.items() if k in all_param_infos(effs)}
-    return with_params(Plant(), effs, own)
-
-
 @dataclasses.dataclass
 class _LogProblem:
     log: Log
@@ -377,14 +369,12 @@ class _LogProblem:
 
 
 def _log_problem(log: Log, result: FitResult, effects) -> _LogProblem:
-    inputs = Inputs.from_log(log)
+    (exp,) = make_experiments([log])  # inputs, measurements and noise levels
     off = result.x0_offsets.get(log.name, 0.0)
-    inputs = eqx.tree_at(lambda i: i.x0, inputs, inputs.x0 + off)
-    s = MeasurementModel().sigmas(log.sample_period)
-    sig = np.array([s["height_m"], s["speed_mps"], s["pressure_pa"]])
-    cols = [log.height_m, log.speed_mps, log.pressure_pa]
-    rows = tuple(i for i, c in enumerate(cols) if c is not None)
-    z = np.stack([np.asarray(cols[i], float) / sig[i] for i in rows], axis=1)
+    inputs = eqx.tree_at(lambda i: i.x0, exp.inputs, exp.inputs.x0 + off)
+    sig = np.asarray(exp.sigma)
+    rows = exp.signals
+    z = (np.asarray(exp.y)[list(rows)] / sig[list(rows), None]).T
     extra = [sc * 100.0 for e in effects for sc in e.state_scales]
     D = np.concatenate([sig, np.asarray(extra, float)])
     return _LogProblem(log, inputs, z, rows, sig, D)
@@ -450,8 +440,7 @@ def estimate_missing_shape(
         model itself cannot be simulated on a log.
     """
     say = progress or (lambda s: None)
-    plant, effects = _model(result)
-    effects = canonical_effects(effects)
+    plant, effects = result.model.plant, canonical_effects(result.model.effects)
     lps = [_log_problem(lg, result, effects) for lg in logs]
     pts = []
     for lp in lps:
