@@ -332,3 +332,17 @@ def test_cli_tune_with_a_hand_written_parameter_file(tmp_path):
     assert summary["robustness"]["n_draws"] == 3
     assert any(k.endswith("@ 500 kg") for k in summary["robustness"]["cases"])
     assert "robust_vs_nominal" in summary["robustness"]
+
+
+def test_robust_gains_recommended_only_where_they_hold_on_held_out_draws():
+    from jaxlift.workflows.tune import recommended
+
+    def verdict(*improvements):
+        return {"cases": [{"case": f"{m} kg", "improvement": g}
+                          for m, g in zip((500, 1500), improvements, strict=False)]}  # fmt: skip
+
+    assert recommended(verdict(0.12, 0.0)) == ("robust-tuned", None)
+    name, note = recommended(verdict(0.3, -0.01))
+    assert name == "nominal-tuned" and "1500 kg" in note and "500 kg," not in note
+    name, note = recommended({"cases": []})
+    assert name == "robust-tuned" and "without a held-out" in note

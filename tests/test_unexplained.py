@@ -98,3 +98,10 @@ def test_a_law_outside_the_eight_is_unexplained_not_named(tmp_path):
         if step["explained_share"] is not None:
             assert step["explained_share"] < 0.5, step["verdict"]
             assert step["verdict"] in " ".join(d["reasons"])
+    # the shape (--shape auto: estimated when unexplained): the drag is a force; a law
+    # is printed only for a signal the data need
+    shape = d["missing_shape"]
+    assert shape["needed"]["force"], shape["evidence"]
+    for sig, needed in shape["needed"].items():
+        said = f"missing {sig} (needed" if needed else f"missing {sig}: not needed"
+        assert said in proc.stdout, proc.stdout[-2000:]

@@ -102,9 +102,11 @@ def cmd_diagnose(args) -> int:
         shape = json.load(fh).get("missing_shape")
     if shape and "laws" in shape:
         for sig in ("force", "flow"):
-            need = "needed" if shape["needed"][sig] else "not needed"
-            print(f"missing {sig} ({need}, evidence {shape['evidence'][sig]:.0f}): "
-                  f"{shape['laws'][sig]['law']}")  # fmt: skip
+            ev = f"evidence {shape['evidence'][sig]:.0f}, share {shape['shares'][sig]:.0%}"
+            if shape["needed"][sig]:
+                print(f"missing {sig} (needed, {ev}): {shape['laws'][sig]['law']}")
+            else:  # a law fitted to a signal the data do not need would be read as one
+                print(f"missing {sig}: not needed ({ev})")
     elif shape:
         print(f"shape of what is missing: {shape['failed']}")
     print(f"wrote {args.out}/diagnosis.json, report.md, report.html, figures/")

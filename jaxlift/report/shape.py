@@ -117,7 +117,7 @@ def shape_section(rep: Report, shape: MissingShape, figs: pathlib.Path) -> dict:
             "needed": "yes" if shape.needed[sig] else "no",
             "rms": f"{np.sqrt(np.mean(y**2)) * _SCALE[sig]:.3g} "
                    f"{'N' if sig == 'force' else 'cm³/s'}",
-            "candidate law": laws[sig].describe(),
+            "candidate law": laws[sig].describe() if shape.needed[sig] else "(not needed)",
         })  # fmt: skip
     rep.table(rows, caption="The two missing signals. The law is a sparse regression over "
               "a library of terms (best subset; a term is kept if it adds at least "

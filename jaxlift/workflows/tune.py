@@ -245,12 +245,6 @@ def run_tune(
             gain_sets["robust-tuned"] = robust.controller
             chosen, chosen_name = robust.controller, "robust-tuned"
 
-    comment = (
-        f"jaxlift tune ({chosen_name}) on {params_path or 'nominal model'}; effects "
-        f"{[e.name for e in effects]}; loads {loads} kg; "
-        + (f"sampled, T_c = {T_c:g} s" if sampled else "continuous controller")
-    )
-    save_gains(out / "gains.json", chosen, comment=comment)
     save_gains(out / "gains_nominal.json", nominal.controller, comment="nominal-tuned")
     if robust is not None:
         save_gains(out / "gains_robust.json", robust.controller, comment="robust-tuned")
@@ -280,7 +274,6 @@ def run_tune(
         )
         + f". Parameter draws: {draws.source if draws is not None else 'none'}. "
         + "".join(f"Note: {n}. " for n in notes)
-        + f"Written gains: **{chosen_name}** (`gains.json`)."
     )
     rows = []
     for name, ctrl in gain_sets.items():
@@ -329,11 +322,48 @@ def run_tune(
             rep.heading("Does robust tuning pay?")
             rep.text(verdict["text"])
             progress(verdict["text"])
+            name, note = recommended(verdict)
+            if name == "nominal-tuned":
+                chosen, chosen_name = nominal.controller, name
+            if note:
+                notes.append(note)
+                progress(f"note: {note}")
+    elif robust is not None:
+        notes.append("robust-tuned gains recommended without a held-out check (eval_draws = 0)")
+    comment = (
+        f"jaxlift tune ({chosen_name}) on {params_path or 'nominal model'}; effects "
+        f"{[e.name for e in effects]}; loads {loads} kg; "
+        + (f"sampled, T_c = {T_c:g} s" if sampled else "continuous controller")
+    )
+    save_gains(out / "gains.json", chosen, comment=comment)
+    rep.heading("Recommended gains")
+    rep.text(
+        f"Written gains: **{chosen_name}** (`gains.json`): the robust-tuned gains when "
+        "their worst cost over the held-out draws is no higher than the nominal-tuned "
+        "gains' in every case, else the nominal-tuned."
+        + "".join(f" Note: {n}." for n in notes[-1:] if "recommended" in n)
+    )
     md, html = rep.write(out)
     with open(out / "summary.json", "w", encoding="utf-8") as fh:
         json.dump({"gains": rows, "robustness": summary}, fh, indent=1, default=str)
     progress(f"wrote {out / 'gains.json'} ({chosen_name}), {md}, {html}, figures/")
     return TuneRun(chosen, chosen_name, nominal, robust, gain_sets, rows, draws, summary, notes)
+
+
+def recommended(verdict: dict) -> tuple[str, str | None]:
+    """Which tuned gains to recommend, from :func:`robust_verdict`'s held-out
+    comparison: ``"robust-tuned"`` when their worst cost over the held-out draws is no
+    higher than the nominal-tuned gains' in every case, else ``"nominal-tuned"`` (the
+    robust objective was lower on the tuning draws only). Returns ``(name, note)``."""
+    worse = [c["case"] for c in verdict.get("cases", []) if c["improvement"] < 0]
+    if not verdict.get("cases"):
+        return "robust-tuned", "robust-tuned gains recommended without a held-out comparison"
+    if worse:
+        return "nominal-tuned", (
+            "the robust-tuned gains' held-out worst cost is higher than the nominal-tuned "
+            f"gains' on {', '.join(worse)}: the nominal-tuned gains are recommended"
+        )
+    return "robust-tuned", None
 
 
 def robust_verdict(summary: dict) -> dict:
