@@ -92,6 +92,7 @@ def test_a_hidden_force_is_recovered_when_the_parameters_are_right():
     shape = jl.estimate_missing_shape(truth, [lg for lg, _ in made])
     assert shape.needed == {"force": True, "flow": False}, (shape.evidence, shape.shares)
     assert shape.dominant == "force"
+    assert shape.shares["force"] > 0.9 and 0.0 <= shape.shares["flow"] < 0.1, shape.shares
     for lg in shape.logs:
         hidden = -law.mu * lg.p * np.tanh(lg.v / 1e-3)
         assert np.corrcoef(hidden, lg.force)[0, 1] >= 0.9

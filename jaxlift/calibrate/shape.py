@@ -569,8 +569,17 @@ def _choose_q(lps, pts, start):
 
 def _shares(lps, pts, log10_q) -> dict[str, float]:
     """The share of the misfit each signal explains alone (see :class:`MissingShape`)."""
-    q = 10.0 ** np.asarray(log10_q, float)
-    configs = {"both": q, "force": q * [1, 0], "flow": q * [0, 1], "none": q * 0}
+    # a signal switched off gets a roughness far below the grid's (a straight line in
+    # effect), not 0: with both signals exactly rigid the smoother's covariance is
+    # singular and its chi2 NaN (measured: a hidden drag, the flow's q chosen 0)
+    off = 10.0 ** (LOG10_Q_GRID[0] - 6.0)
+    q = np.maximum(10.0 ** np.asarray(log10_q, float), off)
+    configs = {
+        "both": q,
+        "force": np.array([q[0], off]),
+        "flow": np.array([off, q[1]]),
+        "none": np.array([off, off]),
+    }
     chi2 = {}
     for name, qq in configs.items():
         chi2[name] = sum(float(_smooth(*_args(lp, pt, qq))[4]) for lp, pt in zip(lps, pts))

@@ -58,6 +58,10 @@ def cmd_fit(args) -> int:
     print(f"converged: {result.converged}")
     for name, lm in metrics["logs"].items():
         b, a = lm["before"], lm["after"]
+        if "failed" in b or "failed" in a:
+            why = a.get("failed") or b.get("failed")
+            print(f"  {name:24s} {lm['role']:9s} not simulated ({why})")
+            continue
         print(
             f"  {name:24s} {lm['role']:9s} chi2/N {b['chi2_per_sample']:10.3g} -> "
             f"{a['chi2_per_sample']:8.3g}   RMS speed {b.get('rms_speed_mmps', float('nan')):6.2f}"
@@ -102,7 +106,10 @@ def cmd_diagnose(args) -> int:
         shape = json.load(fh).get("missing_shape")
     if shape and "laws" in shape:
         for sig in ("force", "flow"):
-            ev = f"evidence {shape['evidence'][sig]:.0f}, share {shape['shares'][sig]:.0%}"
+            share = shape["shares"][sig]
+            ev = f"evidence {shape['evidence'][sig]:.0f}, share " + (
+                "n/a" if share is None else f"{share:.0%}"
+            )
             if shape["needed"][sig]:
                 print(f"missing {sig} (needed, {ev}): {shape['laws'][sig]['law']}")
             else:  # a law fitted to a signal the data do not need would be read as one

@@ -236,7 +236,8 @@ def plot_error_steps(rows: list[dict], path) -> str:
     fig, ax = new_figure(figsize=(8, 4))
     x = np.arange(len(rows))
     for j, k in enumerate(keys):
-        ax.plot(x, [r[k] for r in rows], "o-", label=k, color=f"C{j}")
+        y = [r[k] if isinstance(r[k], (int, float)) else np.nan for r in rows]  # failed
+        ax.plot(x, y, "o-", label=k, color=f"C{j}")
     ax.set_xticks(x, [r["model"].replace("baseline + ", "+") for r in rows], rotation=15)
     ax.set_yscale("log")
     ax.axhline(1.0, color="0.5", ls="--", lw=0.8)

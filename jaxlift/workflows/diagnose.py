@@ -114,18 +114,28 @@ def run_diagnose(
     x0s = [d.base_fit.x0_offsets for d in steps]
     if steps[-1].winner_fit is not None:
         x0s.append(steps[-1].winner_fit.x0_offsets)
-    sims = {
-        tuple(e): simulate_logs(p, e, all_logs, {**estimate_x0_offsets(p, e, validate_logs), **x0})
-        for (e, p), x0 in zip(models, x0s)
-    }
     labels = ["baseline" + "".join(f" + {x}" for x in e) for e, _ in models]
+    # a log that one of the models cannot simulate (a held-out log under the baseline,
+    # say) is named with the reason and left out of the per-log sections below
+    failed: dict[str, dict[str, str]] = {}
+    sims = {}
+    for (e, p), x0, label in zip(models, x0s, labels):
+        why: dict[str, str] = {}
+        x0 = {**estimate_x0_offsets(p, e, validate_logs), **x0}
+        sims[tuple(e)] = simulate_logs(p, e, all_logs, x0, failures=why)
+        for name, msg in why.items():
+            failed.setdefault(name, {})[label] = msg
     error_rows = []
     for (e, _p), label in zip(models, labels):
         row = {"model": label}
         for i, lg in enumerate(all_logs):
             role = "fit" if i < len(logs) else "held-out"
-            row[f"{lg.name} ({role}) chi2/N"] = chi2n(lg, sims[tuple(e)][i])
+            sim = sims[tuple(e)][i]
+            row[f"{lg.name} ({role}) chi2/N"] = (
+                chi2n(lg, sim) if sim is not None else "simulation failed"
+            )
         error_rows.append(row)
+    shown = [i for i, lg in enumerate(all_logs) if lg.name not in failed]
     plot_error_steps(error_rows, figs / "error_by_step.png")
     first = steps[0]
     verdicts = found_effects(steps)
@@ -148,6 +158,7 @@ def run_diagnose(
         "final_effects": list(models[-1][0]),
         "final_params": {k: float(v) for k, v in models[-1][1].items()},
         "signatures": {},
+        "simulation_failures": failed,
     }
     rep = Report("jaxlift diagnosis: which physical effect is missing?")
     missing = ", ".join(f"**{v}**" for v in verdicts if v not in dropped) or "**none**"
@@ -170,6 +181,12 @@ def run_diagnose(
     )
     for name, why in first.heldout_excluded.items():
         rep.text(f"Held-out log `{name}` is not used to judge the candidates: {why}.")
+    for name, by_model in failed.items():
+        rep.text(
+            f"Log `{name}` could not be simulated by "
+            + "; ".join(f"the {label} model ({msg})" for label, msg in by_model.items())
+            + ": it is left out of the per-log sections below."
+        )
     rep.heading("The error falling, step by step")
     rep.table(error_rows, caption="chi2 per sample (1 = sensor noise level) of each model.")
     rep.figure(figs / "error_by_step.png", "Error of each model on fitted and held-out logs.")
@@ -217,8 +234,8 @@ def run_diagnose(
     )
     final_sims_all = sims[tuple(models[-1][0])]
     where_rows = []
-    for i, lg in enumerate(all_logs):
-        sim = final_sims_all[i]
+    for i in shown:
+        lg, sim = all_logs[i], final_sims_all[i]
         for row in error_table(lg, sim["height"], sim["speed"]):
             where_rows.append({"log": lg.name, **row})
     data["where_error_remains"] = where_rows
@@ -228,7 +245,8 @@ def run_diagnose(
     base_sims = sims[tuple(models[0][0])]
     final_sims = sims[tuple(models[-1][0])]
     osc = {"baseline": [], labels[-1]: []}
-    for i, lg in enumerate(all_logs):
+    for i in shown:
+        lg = all_logs[i]
         sig_b = _signature_metrics(lg, base_sims[i])
         sig_f = _signature_metrics(lg, final_sims[i])
         data["signatures"][lg.name] = {"baseline": sig_b, "final": sig_f}
@@ -236,7 +254,7 @@ def run_diagnose(
             segs = segment_log(lg)
             osc["baseline"].extend(oscillation_table(lg, base_sims[i]["speed"], segs))
             osc[labels[-1]].extend(oscillation_table(lg, final_sims[i]["speed"], segs))
-        if i == 0:
+        if i == shown[0]:
             segs = segment_log(lg)
             for w, (t0, t1) in enumerate(zoom_windows(lg, segs, n=2)):
                 p = plot_overlay(

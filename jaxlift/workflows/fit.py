@@ -22,6 +22,7 @@ from ..model.log import Log
 from ..model.measurement import MeasurementModel
 from ..model.plant import Plant
 from ..model.simulate import simulate
+from ..model.solution import SimulationError
 from ..report.document import json_safe
 from ..report.fit import fit_report
 
@@ -31,10 +32,13 @@ def simulate_logs(
     effects: Sequence[str],
     logs: Sequence[Log],
     x0_offsets: Mapping[str, float] | None = None,
-) -> list[dict[str, np.ndarray]]:
+    failures: dict[str, str] | None = None,
+) -> list[dict[str, np.ndarray] | None]:
     """Simulate every log's input with the given model; arrays at the log's times.
     ``x0_offsets`` [m] shift the initial height of the named logs (a fit's estimates).
-    Raises :class:`~jaxlift.SimulationError` if a simulation fails."""
+    Raises :class:`~jaxlift.SimulationError` if a simulation fails, unless a dict
+    ``failures`` is given: then a failed log's entry is ``None`` and the reason is
+    stored under the log's name (a report goes on without that log)."""
     effs = make_effects(effects)
     own = {k: v for k, v in params.items() if k in all_param_infos(effs)}
     plant, effs = with_params(Plant(), effs, own)
@@ -44,7 +48,14 @@ def simulate_logs(
         off = (x0_offsets or {}).get(log.name, 0.0)
         inputs = eqx.tree_at(lambda i: i.x0, inputs, inputs.x0 + off)
         sol = simulate(plant, effs, inputs)
-        sol.check(f"simulating {log.path or log.name}")
+        try:
+            sol.check(f"simulating {log.path or log.name}")
+        except SimulationError as err:
+            if failures is None:
+                raise
+            failures[log.name] = str(err)
+            out.append(None)
+            continue
         out.append(
             {
                 "height": np.asarray(sol.height),
@@ -107,7 +118,9 @@ def _rms(a) -> float:
     return float(np.sqrt(np.mean(np.square(a))))
 
 
-def _log_metrics(log: Log, sim: dict[str, np.ndarray]) -> dict[str, float]:
+def _log_metrics(log: Log, sim: dict[str, np.ndarray] | None, failed: str | None = None):
+    if sim is None:
+        return {"failed": failed}
     m = {
         "chi2_per_sample": chi2n(log, sim),
         "rms_height_mm": _rms(sim["height"] - log.height_m) * 1e3,
@@ -175,21 +188,41 @@ def run_fit(
         ],
         "logs": {},
     }
-    before_all = simulate_logs(result.initial, result.effects, [*fit_logs, *validate_logs])
+    # a log the model cannot simulate (the nominal start, or a held-out log under the
+    # fitted model) is reported as failed, not a crash, and left out of the figures
+    failed_before: dict[str, str] = {}
+    failed_after: dict[str, str] = {}
+    before_all = simulate_logs(
+        result.initial, result.effects, [*fit_logs, *validate_logs], failures=failed_before
+    )
     # held-out logs: their initial-height offsets estimated under the fitted model
     # (a nuisance, as for the fitted logs; see estimate_x0_offsets)
     offsets = {
         **estimate_x0_offsets(result.params, result.effects, validate_logs),
         **result.x0_offsets,
     }
-    after_all = simulate_logs(result.params, result.effects, [*fit_logs, *validate_logs], offsets)
+    after_all = simulate_logs(
+        result.params, result.effects, [*fit_logs, *validate_logs], offsets, failed_after
+    )
     for i, log in enumerate([*fit_logs, *validate_logs]):
         role = "fitted" if i < len(fit_logs) else "held_out"
         metrics["logs"][log.name] = {
             "role": role,
-            "before": _log_metrics(log, before_all[i]),
-            "after": _log_metrics(log, after_all[i]),
+            "before": _log_metrics(log, before_all[i], failed_before.get(log.name)),
+            "after": _log_metrics(log, after_all[i], failed_after.get(log.name)),
         }
     if out_dir is not None:
-        fit_report(result, metrics, fit_logs, validate_logs, before_all, after_all, out_dir)
+        shown = [
+            i for i in range(len(fit_logs) + len(validate_logs))
+            if before_all[i] is not None and after_all[i] is not None
+        ]  # fmt: skip
+        fit_report(
+            result,
+            metrics,
+            [fit_logs[i] for i in shown if i < len(fit_logs)],
+            [validate_logs[i - len(fit_logs)] for i in shown if i >= len(fit_logs)],
+            [before_all[i] for i in shown],
+            [after_all[i] for i in shown],
+            out_dir,
+        )
     return result, metrics

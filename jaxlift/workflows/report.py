@@ -412,9 +412,11 @@ def run_report(
 
 
 def _held_out_chi2(fit_res: dict) -> tuple[float | None, float | None]:
-    rows = [m for m in fit_res["logs"].values() if m["role"] == "held_out"]
+    ok = [m for m in fit_res["logs"].values() if "failed" not in m["before"]
+          and "failed" not in m["after"]]  # fmt: skip
+    rows = [m for m in ok if m["role"] == "held_out"] or ok
     if not rows:
-        rows = list(fit_res["logs"].values())
+        return None, None
     before = float(np.mean([m["before"]["chi2_per_sample"] for m in rows]))
     after = float(np.mean([m["after"]["chi2_per_sample"] for m in rows]))
     return before, after
