@@ -284,3 +284,28 @@ def test_engine_runs_on_a_cluster_given_its_scheduler_address(tmp_path):
         assert run.ran == 2 and len(run.results) == 2 and not run.failures
         # the cluster is not ours: it is still up after the run
         assert cluster.status.name == "running"
+
+
+@pytest.mark.slow
+def test_a_job_with_the_sampled_posterior(tmp_path):
+    """``posterior: mcmc`` (``jaxlift fleet --posterior mcmc``): the job samples the
+    final model's posterior and the row carries its mean and 90 % HDI (a short chain:
+    the test checks the plumbing, the coverage study the intervals)."""
+    from jaxlift.fleet.job import run_job
+
+    _write_fleet(tmp_path / "fleet", {"v1": [0.9e9]})
+    (job,) = discover_jobs(tmp_path / "fleet")
+    settings = {"job": "fit", "n_starts": 1, "posterior": "mcmc", "posterior_max_steps": 300}
+    rec = run_job(job, settings, tmp_path / "job")
+    assert rec["interval"] == "mcmc" and rec["posterior_steps"] <= 300
+    post = json.loads((tmp_path / "job" / "posterior" / "posterior.json").read_text())
+    beta = next(r for r in post["summary"] if r["parameter"] == "beta")
+    assert (rec["beta_lo"], rec["beta"], rec["beta_hi"]) == (
+        beta["HDI 5 %"],
+        beta["mean"],
+        beta["HDI 95 %"],
+    )
+    assert rec["beta_lo"] < 0.9e9 * 1.01 and 0.9e9 * 0.99 < rec["beta_hi"]
+    assert rec["air_lo"] <= rec["air"] <= rec["air_hi"]
+    row = fleet_rows([rec])[0]
+    assert row["interval"] == "mcmc"

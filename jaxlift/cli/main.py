@@ -158,6 +158,8 @@ def cmd_fleet(args) -> int:
         "max_effects": args.max_effects,
         "n_starts": args.starts,
         "seed": args.seed,
+        "posterior": args.posterior,
+        "posterior_max_steps": args.posterior_steps,
         # the workers register the user's effects themselves (their own processes)
         "effect_files": [str(pathlib.Path(f).resolve()) for f in args.effect_file],
         **log_options(args),  # channel_map, resample: how every job reads its logs
@@ -290,6 +292,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-effects", type=int, default=2, help="effects added per job (default 2)")
     p.add_argument("--starts", type=int, default=2, help="starts per fit (default 2)")
     p.add_argument("--seed", type=int, default=0, help="seed of the fits' random starts")
+    p.add_argument(
+        "--posterior", choices=["laplace", "mcmc"], default="laplace",
+        help="the intervals per job: the fit's standard errors (default, seconds) or "
+        "the sampled posterior of the final model (minutes per job)",
+    )  # fmt: skip
+    p.add_argument(
+        "--posterior-steps", type=int, default=5000,
+        help="with --posterior mcmc: at most this many sampler steps per job",
+    )  # fmt: skip
     p.set_defaults(func=cmd_fleet)
 
     from jaxlift.cli.control import add_parsers as add_control_parsers

@@ -40,6 +40,11 @@ DEFAULT_SETTINGS = {
     "max_effects": 2,
     "n_starts": 2,
     "seed": 0,
+    # the intervals: "laplace" (the fit's AR(1)-inflated standard errors, normal on the
+    # log scale: seconds) or "mcmc" (jaxlift posterior of the final model, its 90 % HDI;
+    # minutes per job), at most posterior_max_steps sampler steps
+    "posterior": "laplace",
+    "posterior_max_steps": 5000,
     # how the logs are read (read_log, docs/data.md): channel map and resampling period
     "channel_map": None,
     "resample": None,
@@ -95,6 +100,27 @@ def summarise(result, logs) -> dict:
     row["air_hi"] = float(air_content(row["beta_lo"], p_mean))
     alpha0 = result.params.get("alpha0")
     row["alpha0"] = float(alpha0) if "entrained_air" in result.effects else math.nan
+    row["interval"] = "laplace"
+    return row
+
+
+def sampled_intervals(row: dict, post, p_mean: float) -> dict:
+    """Replace ``row``'s Laplace intervals of the tracked parameters by the
+    posterior's (:func:`~jaxlift.run_posterior` result ``post``): mean, sd and the 90 %
+    HDI; the air content's interval from the bulk modulus's (monotone)."""
+    by = {r["parameter"]: r for r in post["summary"]}
+    for name in TRACKED:
+        r = by.get(name)
+        if r is None:  # not sampled (held): the Laplace interval stays, and says so
+            continue
+        row[name], row[f"{name}_se"] = float(r["mean"]), float(r["sd"])
+        row[f"{name}_lo"], row[f"{name}_hi"] = float(r["HDI 5 %"]), float(r["HDI 95 %"])
+    row["air"] = float(air_content(row["beta"], p_mean))
+    row["air_lo"] = float(air_content(row["beta_hi"], p_mean))
+    row["air_hi"] = float(air_content(row["beta_lo"], p_mean))
+    row["interval"] = "mcmc"
+    row["posterior_converged"] = bool(post["converged"])
+    row["posterior_steps"] = int(post["steps"])
     return row
 
 
@@ -157,13 +183,17 @@ def run_job(job, settings: dict, job_dir: str | pathlib.Path) -> dict:
                 f"{record['baseline_chi2n']:.3g}): no effect is missing that these logs "
                 "could show"
             ]
-        record.update(
-            status="ok",
-            verdict=verdict,
-            effects=effects,
-            reasons=reasons,
-            **summarise(final, logs),
-        )
+        row = summarise(final, logs)
+        if s["posterior"] == "mcmc":
+            from ..workflows.posterior import run_posterior  # the sampler: only if asked
+
+            post = run_posterior(
+                logs, job_dir / "posterior", effects=list(final.effects),
+                params=dict(final.params), max_steps=s["posterior_max_steps"],
+                seed=s["seed"], n_predictive=0, n_loglik=0,
+            )  # fmt: skip
+            row = sampled_intervals(row, post, row["p_mean_pa"])
+        record.update(status="ok", verdict=verdict, effects=effects, reasons=reasons, **row)
     finally:
         jax.clear_caches()  # a long-lived worker must not keep every shape's compilation
     record.update(

@@ -42,7 +42,8 @@ MIN_DATES = 3
 COLUMNS = [
     "vehicle", "date", "status", "verdict", "effects", "chi2n", "baseline_chi2n",
     *[f"{n}{s}" for n in TRACKED for s in ("", "_lo", "_hi", "_se")],
-    "air", "air_lo", "air_hi", "alpha0", "p_mean_pa", "wall_s", "error", "job_key",
+    "air", "air_lo", "air_hi", "alpha0", "p_mean_pa", "interval", "wall_s", "error",
+    "job_key",
     "jaxlift_version",
 ]  # fmt: skip
 
@@ -206,6 +207,7 @@ METHOD = (
     f"Bonferroni's correction over all vehicles and parameters (family-wise alpha "
     f"= {ALPHA}); at least {MIN_DATES} dates. Bulk modulus falling means air content "
     "rising. An effect found on a date after dates without one is flagged as new. "
-    "Intervals are 90 %, from the Laplace approximation at the least-squares optimum "
-    "(standard errors inflated for the residuals' autocorrelation)."
+    "Intervals are 90 %: by default from the Laplace approximation at the least-squares "
+    "optimum (standard errors inflated for the residuals' autocorrelation); with "
+    "`--posterior mcmc` the sampled posterior's HDI (column `interval` says which)."
 )
