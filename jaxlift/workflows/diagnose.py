@@ -23,6 +23,7 @@ from ..report.document import Report, json_safe
 from ..report.fit import plot_error_steps
 from ..report.plots import plot_overlay
 from ..report.shape import shape_section, write_shape_csv
+from ._scratch import output_folder
 from .fit import chi2n, simulate_logs
 
 # ------------------------------------------------------------------ diagnose
@@ -70,7 +71,7 @@ def run_diagnose(
     logs: Sequence[Log],
     validate_logs: Sequence[Log] = (),
     *,
-    out_dir: str | pathlib.Path,
+    out_dir: str | pathlib.Path | None = None,
     iterate: bool = True,
     max_effects: int = 3,
     n_starts: int = 2,
@@ -80,7 +81,8 @@ def run_diagnose(
     progress: Callable[[str], None] | None = None,
 ) -> list:
     """Diagnose (iteratively: add the winner and diagnose again until ``none``), write
-    ``diagnosis.json``, figures and the report. Returns the list of diagnoses.
+    ``diagnosis.json``, figures and the report into ``out_dir`` (None: a temporary
+    folder, removed on return). Returns the list of diagnoses.
     ``base``: a fit of the baseline (or of a starting model: its effects) to begin
     from, instead of fitting it first. ``shape``: estimate the shape of what the final
     model misses (:func:`~jaxlift.estimate_missing_shape`) when the verdict is
@@ -100,7 +102,7 @@ def run_diagnose(
                 base_effects=() if base is None else base.effects,
             )
         ]  # fmt: skip
-    out = pathlib.Path(out_dir)
+    out, _keeper = output_folder(out_dir, "diagnose")  # none: removed on return
     figs = out / "figures"
     figs.mkdir(parents=True, exist_ok=True)
     all_logs = [*logs, *validate_logs]

@@ -24,6 +24,7 @@ from ..posterior.predictive import as_list
 from ..posterior.problem import SETTINGS_FILE, prepare_posterior, problem_from_settings
 from ..posterior.sampler import sample_posterior
 from ..report.posterior import write_outputs
+from ._scratch import output_folder
 
 # ------------------------------------------------------------------ whole job
 
@@ -34,12 +35,14 @@ class PosteriorResult(Mapping):
     posterior as an ArviZ DataTree (:attr:`datatree`: ``posterior``, ``prior``,
     ``observed_data``, ``posterior_predictive``, ``log_likelihood``; ready for
     ``az.loo``/``az.compare``), the summary as a pandas table (:meth:`table`), and the
-    folder it was written to (:attr:`out_dir`)."""
+    folder it was written to (:attr:`out_dir`: a temporary one, removed with the result,
+    when :func:`run_posterior` was given none)."""
 
     def __init__(self, data: Mapping, out_dir: str | os.PathLike):
         self._data = dict(data)
         self.out_dir = pathlib.Path(out_dir)
         self._tree = None
+        self._keeper = None  # the temporary folder of a run without out_dir
 
     def __getitem__(self, key):
         return self._data[key]
@@ -75,7 +78,7 @@ class PosteriorResult(Mapping):
 
 def run_posterior(
     logs: Sequence[Log],
-    out_dir: str | os.PathLike,
+    out_dir: str | os.PathLike | None = None,
     *,
     effects: Sequence[str] | str = (),
     params: Mapping[str, float] | None = None,
@@ -100,7 +103,8 @@ def run_posterior(
     """The whole job behind ``jaxlift posterior``: set up (least squares), sample (or
     resume the chain in ``out_dir``), summarise and report.
 
-    Writes into ``out_dir``: ``chain.h5`` (emcee), ``posterior_settings.json`` (the
+    Writes into ``out_dir`` (None: a temporary folder that lives as long as the
+    returned result): ``chain.h5`` (emcee), ``posterior_settings.json`` (the
     set-up, compared on resume), ``params.json`` (the calibrated values, as ``jaxlift
     fit`` writes them), ``posterior.nc`` (ArviZ DataTree), ``summary.csv``,
     ``posterior.json``, ``figures/*.png``, ``report.md`` and ``report.html``.
@@ -118,7 +122,7 @@ def run_posterior(
     the ArviZ DataTree)."""
 
     say = progress or (lambda _line: None)
-    out = pathlib.Path(out_dir)
+    out, keeper = output_folder(out_dir, "posterior")
     out.mkdir(parents=True, exist_ok=True)
     chain = out / "chain.h5"
     settings_path = out / SETTINGS_FILE
@@ -189,4 +193,6 @@ def run_posterior(
         problem, run, logs, out, n_predictive=n_predictive, n_loglik=n_loglik, seed=seed,
         beta_oil=beta_oil,
     )  # fmt: skip
-    return PosteriorResult(data, out)
+    res = PosteriorResult(data, out)
+    res._keeper = keeper  # no out_dir: the temporary folder lives as long as the result
+    return res

@@ -33,6 +33,7 @@ from ..model.log import Log
 from ..model.plant import Plant
 from ..report.document import Report
 from ..report.tuning import plot_response, robustness_report
+from ._scratch import output_folder
 from .fit import run_fit
 
 #: Noise seeds of ``jaxlift tune``'s cost (the mean over them): four realisations
@@ -118,7 +119,7 @@ def run_tune(
     logs: Sequence[Log],
     plant: Plant,
     effects: Sequence[AbstractEffect],
-    out_dir: str | os.PathLike,
+    out_dir: str | os.PathLike | None = None,
     *,
     params_path: str | None = None,
     posterior_dir: str | os.PathLike | None = None,
@@ -143,7 +144,8 @@ def run_tune(
         logs: the logs whose loads are the tuning loads.
         plant, effects: the calibrated model (see :func:`calibrated_model`).
         out_dir: output directory (``gains.json``, ``gains_nominal.json``,
-            ``gains_robust.json``, ``summary.json``, ``report.md/.html``, ``figures/``).
+            ``gains_robust.json``, ``summary.json``, ``report.md/.html``, ``figures/``;
+            None: a temporary folder, removed on return).
         params_path: the parameter file the model came from; its folder is searched for
             a fit's covariance when there is no posterior.
         posterior_dir: posterior directory for the parameter draws.
@@ -161,7 +163,7 @@ def run_tune(
         report_noise_seed: noise seed of the report's noisy case (None: leave it out).
         progress: receives one line per step.
     """
-    out = pathlib.Path(out_dir)
+    out, _keeper = output_folder(out_dir, "tune")  # none: removed on return
     (out / "figures").mkdir(parents=True, exist_ok=True)
     loads = sorted({round(float(np.median(lg.load_kg)), 0) for lg in logs})
     progress(
