@@ -580,9 +580,15 @@ def _shares(lps, pts, log10_q) -> dict[str, float]:
         "flow": np.array([off, q[1]]),
         "none": np.array([off, off]),
     }
+    # no signal can make the best fit worse than none: each configuration's chi2 is at
+    # most the baseline's (sum of squared residuals at the linearisation point). The
+    # smoother with both signals (nearly) rigid can also diverge numerically (measured:
+    # chi2 1e63 with q = 1e-9 on a hidden drag): then the baseline's value stands.
+    base = sum(float(np.sum(pt.resid**2)) for pt in pts)
     chi2 = {}
     for name, qq in configs.items():
-        chi2[name] = sum(float(_smooth(*_args(lp, pt, qq))[4]) for lp, pt in zip(lps, pts))
+        v = sum(float(_smooth(*_args(lp, pt, qq))[4]) for lp, pt in zip(lps, pts))
+        chi2[name] = min(v, base) if np.isfinite(v) else base
     gain = chi2["none"] - chi2["both"]
     if gain <= 0:
         return {"force": 0.0, "flow": 0.0}
