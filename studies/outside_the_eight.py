@@ -170,6 +170,21 @@ def evaluate(case: dict, diag_dir: pathlib.Path) -> dict:
     t, e = np.concatenate(targets), np.concatenate(ests)
     out["correlation"] = float(np.corrcoef(t, e)[0, 1]) if np.std(e) > 0 else 0.0
     out["signal"] = signal
+    # the law of the signal that carries the hidden law, from the estimate as written
+    # (every 5th sample of the fitted logs, as MissingShape.laws), with the terms the
+    # data cannot tell from the leading one (Law.alternatives)
+    fitted = [row for row in rows if row["log"] in {sp["name"] for sp in case["logs"][:2]}]
+    col = {k: np.array([float(x[k]) for x in fitted[::5]]) for k in fitted[0] if k != "log"}
+    states = {"t": col["time_s"] - col["time_s"].min(), "x": col["height_m"],
+              "v": col["speed_mps"], "p": col["pressure_pa"], "a": col["accel_mps2"],
+              "u": col["pwm"]}  # fmt: skip
+    y, sd = (col["force_N"], col["force_sd_N"]) if signal == "force" else (
+        col["flow_m3s"], col["flow_sd_m3s"])  # fmt: skip
+    law_fit = jl.explain(y, states, name=signal, unit=jl.MissingShape.UNITS[signal],
+                         weights=1.0 / sd**2)  # fmt: skip
+    out["law_leading"], out["law_alternatives"] = law_fit.leading, law_fit.alternatives
+    term = LAWS[case["law"]][3]
+    out["term_named"] = None if term is None else term in {law_fit.leading, *law_fit.alternatives}
     return out
 
 
@@ -252,7 +267,11 @@ def cmd_report(args) -> int:
              "dominant | correlation | leading term | right | time [s] |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for r in results:
-        lead = (r.get("leading") or {}).get(r.get("signal") or r.get("dominant") or "", "")
+        lead = r.get("law_leading") or (r.get("leading") or {}).get(
+            r.get("signal") or r.get("dominant") or "", ""
+        )
+        if r.get("law_alternatives"):
+            lead += " (≈ " + ", ".join(r["law_alternatives"]) + ")"
         lines.append(
             f"| {r['case_id']} | {r['law'] or 'null'} | {_size(r['size'])} | {r['beside'] or ''}"
             f" | {r.get('baseline_chi2n', float('nan')):.3g} | {r.get('final_verdict', 'crash')}"
@@ -267,6 +286,10 @@ def cmd_report(args) -> int:
               f"- laws at baseline chi2/N >= 2: `unexplained` in "
               f"{sum(correct(r) for r in big)} of {len(big)}; shape correlation >= 0.9 in "
               f"{sum(r.get('correlation', 0) >= 0.9 for r in big)} of {len(big)}",
+              f"- leading term named (the hidden law's term, or one the data cannot tell "
+              f"from it), where the library has it: "
+              f"{sum(bool(r.get('term_named')) for r in big if r.get('term_named') is not None)}"
+              f" of {sum(r.get('term_named') is not None for r in big)}",
               f"- null cases: `unexplained` in "
               f"{sum(r.get('final_verdict') == 'unexplained' for r in nulls)} of {len(nulls)}",
               ""]  # fmt: skip

@@ -75,6 +75,14 @@ def test_explain_finds_a_planted_law_and_flags_model_terms():
     up = v > 0.002  # lifting: the law is -6e-5 p + 300, a function of p alone
     dep = dependence(y[up], {k: s[up] for k, s in states.items()})
     assert max(dep, key=lambda k: dep[k]["r2"]) == "p" and dep["p"]["r2"] > 0.9
+    assert law.alternatives == []  # these data move both ways: p sign(v) is told from p
+    # logs that only lift: p sign(v) = p wherever the fork moves, so the two terms are
+    # named as indistinguishable, whichever leads
+    only_up = {**states, "v": np.abs(v) + 0.01}
+    y_up = -6e-5 * only_up["p"] * np.tanh(only_up["v"] / 1e-3) + rng.normal(0, 20.0, n)
+    law_up = explain(y_up, only_up, name="force", unit="N")
+    assert {law_up.leading, *law_up.alternatives} >= {"p", "p sign(v)"}, law_up.describe()
+    assert "cannot be told from" in law_up.describe()
     with pytest.raises(ValueError, match="same length"):
         explain(y, states, weights=np.ones(3))
 

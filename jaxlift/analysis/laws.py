@@ -22,6 +22,9 @@ from collections.abc import Callable, Mapping
 import numpy as np
 
 V_EPS = 1e-3  # m/s, the smoothing of sign(v) (as the plant's Coulomb friction)
+#: Two library terms whose weighted correlation over the data is at least this are
+#: reported as indistinguishable (``Law.alternatives``).
+ALIAS_CORR = 0.95
 
 #: The library: name -> (function of the states, unit of the term). States: ``t`` [s],
 #: ``x`` [m], ``v`` [m/s], ``p`` [Pa], ``a`` [m/s^2], ``u`` [-].
@@ -88,7 +91,10 @@ class Law:
     ``coefs``: by term name, in the signal's unit per the term's unit. ``r2``: weighted
     R² of the law; ``path``: the best R² for each number of terms tried. ``leading``: the
     term with the largest contribution; ``model_terms``: the chosen terms the model
-    already has (with the parameter they shift)."""
+    already has (with the parameter they shift); ``alternatives``: library terms that
+    the data cannot tell from the leading one (weighted correlation of the centred
+    columns at least :data:`ALIAS_CORR`: e.g. ``p`` and ``p sign(v)`` on logs that
+    only lift)."""
 
     signal: str
     unit: str
@@ -98,6 +104,7 @@ class Law:
     leading: str
     model_terms: dict[str, str]
     min_gain: float
+    alternatives: list[str] = dataclasses.field(default_factory=list)
 
     def describe(self) -> str:
         parts = []
@@ -108,6 +115,10 @@ class Law:
         text = f"missing {self.signal} ~ " + " ".join(parts) + f"  (R² {self.r2:.2f})"
         if self.model_terms:
             text += "; " + ", ".join(f"{t}: a shift of {p}" for t, p in self.model_terms.items())
+        if self.alternatives:
+            text += f"; on these data {self.leading} cannot be told from " + " or ".join(
+                self.alternatives
+            )
         return text
 
     def predict(self, states: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -116,7 +127,8 @@ class Law:
     def as_dict(self) -> dict:
         return {
             "signal": self.signal, "unit": self.unit, "coefs": self.coefs, "r2": self.r2,
-            "leading": self.leading, "model_terms": self.model_terms,
+            "leading": self.leading, "alternatives": self.alternatives,
+            "model_terms": self.model_terms,
             "path": [{"terms": t, "r2": r} for t, r in self.path],
             "min_gain": self.min_gain, "law": self.describe(),
         }  # fmt: skip
@@ -201,11 +213,28 @@ def explain(
     new = {t: c for t, c in contrib.items() if t not in model}
     contrib = new or contrib
     leading = max(contrib, key=contrib.get) if contrib else "1"
+    alternatives = []
+    if leading != "1":
+        lead = X[:, names.index(leading)]
+        for n in names:
+            if n in ("1", leading) or n in terms:
+                continue
+            if abs(_wcorr(lead, X[:, names.index(n)], wk)) >= ALIAS_CORR:
+                alternatives.append(n)
     return Law(
         signal=name, unit=unit, coefs=coefs, r2=r2,
         path=[(t, float(r)) for t, r, _ in path], leading=leading,
         model_terms={t: model[t] for t in terms if t in model}, min_gain=min_gain,
+        alternatives=alternatives,
     )  # fmt: skip
+
+
+def _wcorr(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> float:
+    """Weighted correlation of two columns (centred with the weights)."""
+    wn = w / np.sum(w)
+    da, db = a - np.sum(wn * a), b - np.sum(wn * b)
+    den = np.sqrt(np.sum(wn * da**2) * np.sum(wn * db**2))
+    return float(np.sum(wn * da * db) / den) if den > 0 else 0.0
 
 
 def dependence(
