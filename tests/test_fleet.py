@@ -309,3 +309,16 @@ def test_a_job_with_the_sampled_posterior(tmp_path):
     assert rec["air_lo"] <= rec["air"] <= rec["air_hi"]
     row = fleet_rows([rec])[0]
     assert row["interval"] == "mcmc"
+
+
+def test_the_table_keeps_text_columns_as_text(tmp_path):
+    """Every text column of the fleet table is written as text (measured: the new
+    ``interval`` column was cast to float and ``jaxlift fleet`` ended with exit 2)."""
+    from jaxlift.fleet.trends import COLUMNS, write_table
+
+    rec = {c: 1.0 for c in COLUMNS}
+    rec.update(vehicle="v1", date="2026-03-02", status="ok", verdict="none", effects="",
+               interval="laplace", error=None, job_key="k", jaxlift_version="0")  # fmt: skip
+    write_table(fleet_rows([rec]), tmp_path)
+    (row,) = pq.read_table(tmp_path / "fleet.parquet").to_pylist()
+    assert row["interval"] == "laplace" and row["verdict"] == "none" and row["beta"] == 1.0

@@ -27,6 +27,7 @@ from ..model.inputs import Inputs
 from ..model.log import read_log
 from ..posterior.air import air_content, mean_pressure
 from ..workflows.diagnose import run_diagnose
+from ..workflows.posterior import run_posterior
 from .manifest import code_version
 
 #: What a job does unless told otherwise (``jaxlift fleet --help``).
@@ -185,8 +186,6 @@ def run_job(job, settings: dict, job_dir: str | pathlib.Path) -> dict:
             ]
         row = summarise(final, logs)
         if s["posterior"] == "mcmc":
-            from ..workflows.posterior import run_posterior  # the sampler: only if asked
-
             post = run_posterior(
                 logs, job_dir / "posterior", effects=list(final.effects),
                 params=dict(final.params), max_steps=s["posterior_max_steps"],

@@ -64,7 +64,8 @@ def write_table(rows: Sequence[dict], out_dir: str | pathlib.Path) -> list[pathl
     """``fleet.parquet`` (typed columns; dates as dates) and ``fleet.csv`` beside it."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    text = {"vehicle", "status", "verdict", "effects", "error", "job_key", "jaxlift_version"}
+    text = {"vehicle", "status", "verdict", "effects", "interval", "error", "job_key",
+            "jaxlift_version"}  # fmt: skip
     arrays = {}
     for c in COLUMNS:
         vals = [r.get(c) for r in rows]
