@@ -432,8 +432,10 @@ def estimate_missing_shape(
         iterations: the most Gauss--Newton passes (simulate, linearise, smooth). A pass
             whose step makes a log's fit worse, or its simulation fail, is halved (up to
             four times); the iteration stops when the signals change by less than 1 %
-            of their scales. (Six passes left a large duty saturation at chi2/N 180 on
-            one log, still falling: measured in the outside-the-eight study.)
+            of their scales. (Measured in the outside-the-eight study: on a large duty
+            saturation one log stalled at chi2/N 180 after six passes, and fifteen did
+            not move it -- the steps are rejected, the linearisation about the baseline
+            is poor that far from it; the other log reached 0.84.)
         progress: optional callable taking a line of text.
 
     Returns:
