@@ -209,6 +209,7 @@ def run_tune(
     except Exception as err:  # noqa: BLE001 -- no draws: nominal only, and say so
         progress(f"no parameter draws ({err}): robust tuning and report skipped")
     robust = None
+    choice_note = None  # why the written gains are the ones they are, if not plain
     if draws is not None:
         progress(f"parameter draws: {draws.source}")
         model_effects = sorted(e.name for e in effects)
@@ -324,14 +325,15 @@ def run_tune(
             rep.heading("Does robust tuning pay?")
             rep.text(verdict["text"])
             progress(verdict["text"])
-            name, note = recommended(verdict)
+            name, choice_note = recommended(verdict)
             if name == "nominal-tuned":
                 chosen, chosen_name = nominal.controller, name
-            if note:
-                notes.append(note)
-                progress(f"note: {note}")
+            if choice_note:
+                notes.append(choice_note)
+                progress(f"note: {choice_note}")
     elif robust is not None:
-        notes.append("robust-tuned gains recommended without a held-out check (eval_draws = 0)")
+        choice_note = "robust-tuned gains recommended without a held-out check (eval_draws = 0)"
+        notes.append(choice_note)
     comment = (
         f"jaxlift tune ({chosen_name}) on {params_path or 'nominal model'}; effects "
         f"{[e.name for e in effects]}; loads {loads} kg; "
@@ -343,7 +345,7 @@ def run_tune(
         f"Written gains: **{chosen_name}** (`gains.json`): the robust-tuned gains when "
         "their worst cost over the held-out draws is no higher than the nominal-tuned "
         "gains' in every case, else the nominal-tuned."
-        + "".join(f" Note: {n}." for n in notes[-1:] if "recommended" in n)
+        + (f" Note: {choice_note}." if choice_note else "")
     )
     md, html = rep.write(out)
     with open(out / "summary.json", "w", encoding="utf-8") as fh:
