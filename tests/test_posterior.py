@@ -334,7 +334,11 @@ def test_cli_end_to_end(logs, tmp_path, capsys):
     effects, draws = posterior_draws(out, 5, seed=1)
     assert effects == [] and len(draws) == 5
     assert set(draws[0]) == set(jl.all_param_infos(()))
-    assert draws[0]["k1"] == pytest.approx(json.loads((out / "params.json").read_text())["k1"])
+    # the motor set is marginalised: each draw carries the motor set that goes with its
+    # sampled values (the linearised conditional optimum), close to the least squares
+    k1_ls = json.loads((out / "params.json").read_text())["k1"]
+    assert all(d["k1"] == pytest.approx(k1_ls, rel=0.05) for d in draws)
+    assert len({d["k1"] for d in draws}) > 1
     assert len({d["beta"] for d in draws}) > 1
     assert posterior_draws(out, 5, seed=1) == (effects, draws)
 

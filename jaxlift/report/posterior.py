@@ -371,15 +371,26 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
 
 
 def _az_fig(fn_name, dt, names, path):
-    """An ArviZ figure of ``names`` saved to ``path``. ArviZ refuses more than
-    ``plot.max_subplots`` (40) panels; a pair plot of 7 or more parameters (e.g. the
-    dynamic set with two effects: 8 x 8 = 64) needs more, and the whole posterior run
-    ended in that error after sampling. The limit is raised for this figure alone."""
-    n_panels = max(len(names) ** 2, 40)
+    """An ArviZ figure of ``names`` saved to ``path``, sized for the number of
+    parameters (ArviZ's default size crowded 8 parameters' titles and ticks into each
+    other). ArviZ refuses more than ``plot.max_subplots`` (40) panels; a pair plot of 7
+    or more parameters (e.g. the dynamic set with two effects: 8 x 8 = 64) needs more,
+    and the whole posterior run ended in that error after sampling. The limit is raised
+    for this figure alone."""
+    n = len(names)
+    n_panels = max(n**2, 40)
+    cols = min(n, 4)
+    size = {
+        "plot_dist": dict(
+            col_wrap=cols, figure_kwargs={"figsize": (3.3 * cols, 2.4 * math.ceil(n / cols))}
+        ),
+        "plot_pair": dict(figure_kwargs={"figsize": (1.9 * n + 1.0, 1.9 * n + 1.0)}),
+        "plot_trace_dist": dict(figure_kwargs={"figsize": (12.0, 1.6 * n + 0.8)}),
+    }.get(fn_name, {})
 
     def make():
         with az.rc_context({"plot.max_subplots": n_panels}):
-            pc = getattr(az, fn_name)(dt, var_names=list(names), backend="matplotlib")
+            pc = getattr(az, fn_name)(dt, var_names=list(names), backend="matplotlib", **size)
         pc.savefig(path, dpi=80)
 
     with_pyplot_figures(make)
@@ -387,26 +398,38 @@ def _az_fig(fn_name, dt, names, path):
 
 
 def _plot_prior_posterior(problem, samples, figs):
+    """Prior (line) and posterior (histogram) of each sampled parameter, each scaled to
+    a peak of 1: a posterior a thousand times narrower than its prior (``beta`` on the
+    shipped logs) is otherwise a spike too thin to see beside a flat prior. A vertical
+    line marks the posterior median so that even a posterior narrower than one pixel is
+    visible."""
     names = list(problem.names)
-    fig, axes = new_figure(1, len(names), figsize=(3.2 * len(names), 2.8), squeeze=False)
-    for ax, n in zip(axes[0], names):
+    cols = min(len(names), 4)
+    rows = math.ceil(len(names) / cols)
+    fig, axes = new_figure(rows, cols, figsize=(3.3 * cols, 2.5 * rows), squeeze=False)
+    for ax, n in zip(axes.ravel(), names):
         info, pr = problem.infos[n], problem.priors[n]
         x = np.asarray(samples[n]).ravel()
-        pos = x > 0
-        if pos.all():
+        log_axis = bool((x > 0).all())
+        xs = np.log10(x) if log_axis else x
+        counts, edges = np.histogram(xs, bins=40)
+        ax.stairs(counts / max(counts.max(), 1), edges, fill=True, color="C0", alpha=0.6,
+                  label="posterior")  # fmt: skip
+        ax.axvline(np.median(xs), color="C0", lw=1.0)
+        if log_axis:
             q = np.concatenate([pr.quantiles([0.02, 0.98]), np.quantile(x, [0.0, 1.0])])
             q = q[q > 0]
             grid = np.geomspace(q.min(), q.max(), 400)
-            lg = np.log10(grid)
             dens = np.exp(np.asarray(pr.log_pdf(grid))) * grid * math.log(10)
             dens = np.where((grid >= info.lower) & (grid <= info.upper), dens, 0.0)
-            ax.hist(np.log10(x), bins=40, density=True, color="C0", alpha=0.6, label="posterior")
-            ax.plot(lg, dens, color="0.3", label="prior")
+            if dens.max() > 0:
+                ax.plot(np.log10(grid), dens / dens.max(), color="0.3", label="prior")
             ax.set_xlabel(f"log10 {n} [{info.unit}]")
         else:
-            ax.hist(x, bins=40, density=True, color="C0", alpha=0.6)
             ax.set_xlabel(f"{n} [{info.unit}]")
         ax.set_yticks([])
+    for ax in axes.ravel()[len(names) :]:
+        ax.set_visible(False)
     axes[0][0].legend(fontsize=7)
     return _save(fig, figs / "prior_posterior.png")
 
