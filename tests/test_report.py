@@ -115,3 +115,17 @@ def test_format_value_and_inline_markdown():
     )
     with pytest.raises(ValueError):
         Report("t").heading("x", level=7)
+
+
+def test_air_histogram_zooms_on_the_posterior_and_points_to_a_far_threshold():
+    """A posterior 0.01 % wide beside the 1 % bleeding threshold was drawn as a sliver:
+    the axis now spans the posterior, and the threshold only where it is near."""
+    from jaxlift.report.posterior import air_axis
+
+    rng = np.random.default_rng(0)
+    narrow = rng.normal(0.12, 0.004, 4000)  # percent
+    x0, x1, shown = air_axis(narrow, 1.0)
+    assert not shown and x0 < 0.11 and 0.13 < x1 < 0.2  # the posterior fills the axis
+    wide = rng.normal(0.8, 0.2, 4000)
+    x0, x1, shown = air_axis(wide, 1.0)
+    assert shown and x0 < 0.3 and x1 > 1.0

@@ -346,3 +346,17 @@ def test_robust_gains_recommended_only_where_they_hold_on_held_out_draws():
     assert name == "nominal-tuned" and "1500 kg" in note and "500 kg," not in note
     name, note = recommended({"cases": []})
     assert name == "robust-tuned" and "without a held-out" in note
+
+
+def test_robust_verdict_has_a_one_line_form_for_the_summary():
+    from jaxlift.workflows.tune import ROBUST_TARGET, robust_verdict
+
+    def rows(nom_worst, rob_worst):
+        return [{"gains": "nominal-tuned", "cost_worst": nom_worst, "cost_median": 1.0},
+                {"gains": "robust-tuned", "cost_worst": rob_worst, "cost_median": 1.0}]  # fmt: skip
+
+    v = robust_verdict({"cases": {"500 kg": rows(2.0, 1.9), "1500 kg": rows(3.0, 2.97)}})
+    assert len(v["cases"]) == 2 and "\n" not in v["short"]
+    assert "at most 5.0 %" in v["short"] and "2 cases" in v["short"]
+    assert ("not reached" in v["short"]) == (0.05 < ROBUST_TARGET)
+    assert len(v["short"]) < len(v["text"])  # the per-case figures stay in the section

@@ -109,6 +109,12 @@ class Diagnosis:
     #: the error left by the final model (set on the last step of
     #: :func:`diagnose_iteratively`): see :func:`remaining_misfit`
     misfit: RemainingMisfit | None = None
+    #: candidates that passed the BIC and held-out tests but removed less than
+    #: :data:`MIN_SHARE` of a significant error, with their refits (best first): the
+    #: smaller of two missing effects looks like this (see :func:`diagnose_iteratively`)
+    partial: list[tuple[EffectScreen, FitResult]] = dataclasses.field(default_factory=list)
+    #: what the lookahead of :func:`diagnose_iteratively` tried and why it was not kept
+    lookahead: list[str] = dataclasses.field(default_factory=list)
 
     def explained_share(self) -> float | None:
         """The share of the model error (chi2/N above the noise floor of 1) that the
@@ -160,6 +166,8 @@ class Diagnosis:
             "n_residuals": self.n_residuals,
             "autocorrelation_inflation": self.inflation,
             "dropped_after_adding": self.dropped,
+            "partial": [s.effect for s, _ in self.partial],
+            "lookahead": self.lookahead,
         }
 
 
@@ -286,6 +294,7 @@ def diagnose(
     excess = base.chi2 - base.n_residuals  # the error above the sensor-noise floor
     to_confirm = [s for s in ranking if s.z > z_threshold][:n_confirm]  # None: all
     held_before: list = []  # the current model's held-out error, computed once
+    partial: list[tuple[EffectScreen, FitResult]] = []  # real but not material (below)
 
     def confirm(to_confirm: list[EffectScreen]) -> list[tuple[EffectScreen, FitResult]]:
         """Refit each candidate from its starts; the ones that pass both tests."""
@@ -345,6 +354,16 @@ def diagnose(
             s.delta_bic = bic1 - bic0
             s.fitted_params = {k: best.params[k] for k in infos}
             s.fitted_stderr = {k: best.stderr[k] for k in infos if k in best.stderr}
+            if best.chi2 > base.chi2:
+                # the model with the effect contains the one without (at the nesting
+                # value), so every refit ended in a local minimum: say so, and give no
+                # standard errors of a point that is not an optimum (measured: 1e-72)
+                s.fitted_stderr = None
+                s.failure = (
+                    f"every refit ended above the model without it (chi2/N "
+                    f"{best.chi2 / best.n_residuals:.4g} > {base.chi2 / base.n_residuals:.4g}):"
+                    " local minima, not the optimum"
+                )
             s.heldout_chi2_before = heldout_before
             s.heldout_chi2_after = heldout_after
             say(
@@ -377,6 +396,7 @@ def diagnose(
                     f"confirm {s.effect}: removes only {s.explained_share or 0:.1%} of the "
                     f"error above the noise (needs {MIN_SHARE:.0%}): not kept"
                 )
+                partial.append((s, best))
             if s.delta_bic < -bic_threshold and held_ok and material:
                 passing.append((s, best))
         return passing
@@ -414,6 +434,7 @@ def diagnose(
         undecided_between=between,
         reasons=reasons,
         heldout_excluded=excluded,
+        partial=sorted(partial, key=lambda sb: sb[0].delta_bic),
     )
 
 
@@ -668,6 +689,7 @@ def diagnose_iteratively(
     bic_threshold: float = 10.0,
     base: FitResult | None = None,
     progress: Callable[[str], None] | None = None,
+    lookahead: bool = True,
     **kwargs,
 ) -> list[Diagnosis]:
     """Diagnose, add the winner, diagnose again, until the verdict is ``none`` (or
@@ -684,7 +706,17 @@ def diagnose_iteratively(
     motor lag).
 
     ``base``: a fit of the first step's model (its effects are the starting model),
-    instead of fitting it here."""
+    instead of fitting it here.
+
+    ``lookahead``: when the iteration would end ``unexplained`` and a candidate passed
+    the BIC and held-out tests but removed too small a share of the error to be kept
+    (:attr:`Diagnosis.partial`: the smaller of two missing effects looks like this while
+    the larger is not in the model), that candidate is added provisionally and the
+    iteration goes on from there. It is kept only if the iteration then ends at the
+    sensor-noise floor (``none`` with no significant misfit); otherwise the first
+    ending stands and the attempt is recorded in :attr:`Diagnosis.lookahead`. A
+    stand-in for a law outside the eight does not reach the noise floor with any
+    second candidate, so it is still not named."""
     say = progress or (lambda _s: None)
     steps: list[Diagnosis] = []
     effects: list[str] = [] if base is None else list(base.effects)
@@ -707,6 +739,37 @@ def diagnose_iteratively(
             effects = [e for e in effects if e != name]
             base = reduced
     last = steps[-1]
+    room = max_effects - len(found_effects(steps))
+    if lookahead and last.verdict == "none" and last.partial and room >= 2:
+        usable, _ = usable_heldout(logs, validate_logs)
+        if remaining_misfit(last.base_fit, usable).significant:
+            s0, fit0 = last.partial[0]
+            say(
+                f"lookahead: {s0.effect} passed the tests but removed only "
+                f"{100 * (s0.explained_share or 0):.0f} % of the error; adding it "
+                "provisionally"
+            )
+            more = diagnose_iteratively(
+                logs, validate_logs, max_effects=room - 1, bic_threshold=bic_threshold,
+                base=fit0, progress=progress, lookahead=False, **kwargs,
+            )  # fmt: skip
+            if final_verdict(more) == "none" and found_effects(more):
+                last.verdict, last.winner_fit = s0.effect, fit0
+                last.reasons = [
+                    f"{s0.effect} alone removed only {100 * (s0.explained_share or 0):.0f} % "
+                    f"of the error; kept because with it {', '.join(found_effects(more))} "
+                    "was found and the error reached the sensor-noise floor"
+                ]
+                say("lookahead: " + last.reasons[0])
+                return [*steps, *more]
+            why = (
+                f"{s0.effect} (removing {100 * (s0.explained_share or 0):.0f} % of the error)"
+                f" was added provisionally; the iteration then ended "
+                f"{final_verdict(more)} after {', '.join(found_effects(more)) or 'nothing'}"
+                ", not at the noise floor: not kept"
+            )
+            last.lookahead.append(why)
+            say("lookahead: " + why)
     named = last.verdict not in NOT_AN_EFFECT  # the loop ran out of steps on a name
     if last.verdict == "none" or named:
         usable, _ = usable_heldout(logs, validate_logs)
@@ -731,6 +794,7 @@ def diagnose_iteratively(
                     "error but leave it well above the sensor noise: they may stand in "
                     "for what is missing rather than be it"
                 )
+            last.reasons.extend(last.lookahead)
             for line in last.reasons:
                 say("unexplained: " + line)
     return steps

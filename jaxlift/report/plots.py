@@ -52,6 +52,7 @@ def plot_overlay(
     axes[0].legend(loc="upper left", fontsize=8)
     axes[1].legend(loc="upper left", fontsize=8)
     fig.suptitle(title or log.name)
+    fig.align_ylabels(axes)  # tick labels of different widths left the labels ragged
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     return os.fspath(path)

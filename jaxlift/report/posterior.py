@@ -448,15 +448,41 @@ def _plot_tau(run, figs):
     return _save(fig, figs / "tau.png")
 
 
+def air_axis(x_pct: np.ndarray, threshold_pct: float) -> tuple[float, float, bool]:
+    """x-limits [%] of the gas-fraction histogram, and whether the bleeding threshold
+    is inside them: zoomed on the posterior (0.1-99.9 % quantiles, 25 % margins),
+    widened to the threshold only where the posterior then keeps at least a quarter
+    of the width (a posterior 0.01 % wide beside a 1 % threshold was a sliver)."""
+    q0, q1 = np.quantile(x_pct, [0.001, 0.999])
+    pad = max(q1 - q0, 1e-9) * 0.25
+    x0, x1 = q0 - pad, q1 + pad
+    if x0 - 3 * (x1 - x0) <= threshold_pct <= x1 + 3 * (x1 - x0):
+        x0, x1 = min(x0, threshold_pct - pad), max(x1, threshold_pct + pad)
+    return float(x0), float(x1), bool(x0 <= threshold_pct <= x1)
+
+
 def _plot_air(phi, air, figs):
     fig, ax = new_figure(figsize=(5.5, 3.2))
-    ax.hist(np.asarray(phi).ravel() * 100, bins=50, density=True, color="C1", alpha=0.7)
+    x = np.asarray(phi).ravel() * 100
+    x = x[np.isfinite(x)]
     lo, hi = air["phi_hdi90"]
+    thr = air["threshold"] * 100
+    x0, x1, shown = air_axis(x if x.size else np.array([lo, hi]) * 100, thr)
+    ax.hist(x, bins=50, density=True, color="C1", alpha=0.7)
     ax.axvspan(lo * 100, hi * 100, color="C1", alpha=0.15, label="90 % HDI")
-    ax.axvline(air["threshold"] * 100, color="k", ls="--", label="bleeding threshold")
+    if shown:
+        ax.axvline(thr, color="k", ls="--", label=f"bleeding threshold {thr:.3g} %")
+    else:  # an arrow at the edge says where the threshold is
+        right = thr > x1
+        ax.annotate(
+            f"bleeding threshold {thr:.3g} % {'→' if right else '←'}",
+            xy=(0.98 if right else 0.02, 0.9), xycoords="axes fraction",
+            ha="right" if right else "left", fontsize=8,
+        )  # fmt: skip
+    ax.set_xlim(x0, x1)
     ax.set_xlabel(f"gas volume fraction at {air['p_mean_pa_abs'] / 1e6:.1f} MPa [%]")
     ax.set_yticks([])
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left")
     return _save(fig, figs / "air_fraction.png")
 
 

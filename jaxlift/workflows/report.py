@@ -544,5 +544,10 @@ def write_summary(rep: Report, s: dict, held_out: Sequence[str]) -> None:
         + "."
     )
     if s.get("robust_verdict"):
-        lines.append("**Robust or nominal?** " + s["robust_verdict"]["text"])
+        rv = s["robust_verdict"]
+        short = rv.get("short")  # the per-case figures are in the tuning section
+        lines.append(
+            "**Robust or nominal?** "
+            + (short[0].upper() + short[1:] + " Per case: section 4." if short else rv["text"])
+        )
     rep.text("\n".join(f"- {x}" for x in lines))

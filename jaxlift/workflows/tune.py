@@ -341,10 +341,15 @@ def run_tune(
     )
     save_gains(out / "gains.json", chosen, comment=comment)
     rep.heading("Recommended gains")
+    if robust is None:  # the choice rule below has nothing to choose between
+        rule = "only the nominal model was tuned (no robust tuning in this run)."
+    else:
+        rule = (
+            "the robust-tuned gains when their worst cost over the held-out draws is no "
+            "higher than the nominal-tuned gains' in every case, else the nominal-tuned."
+        )
     rep.text(
-        f"Written gains: **{chosen_name}** (`gains.json`): the robust-tuned gains when "
-        "their worst cost over the held-out draws is no higher than the nominal-tuned "
-        "gains' in every case, else the nominal-tuned."
+        f"Written gains: **{chosen_name}** (`gains.json`): {rule}"
         + (f" Note: {choice_note}." if choice_note else "")
     )
     md, html = rep.write(out)
@@ -417,7 +422,13 @@ def robust_verdict(summary: dict) -> dict:
             "Robust tuning pays where the draws are wide (stated spreads, a poorly "
             "determined fit, a posterior from little data)."
         )
-    return {"cases": cases, "text": "; ".join(lines) + ". " + tail}
+    short = (
+        f"robust tuning lowers the held-out worst-case cost by at most {100 * best:.1f} % "
+        f"over {len(cases)} case{'s' if len(cases) > 1 else ''} (target "
+        f"{100 * ROBUST_TARGET:.0f} %"
+        + ("; reached)." if best >= ROBUST_TARGET else "; not reached: the draws are narrow).")
+    )
+    return {"cases": cases, "text": "; ".join(lines) + ". " + tail, "short": short}
 
 
 def run_control_simulate(
