@@ -13,6 +13,12 @@ study can run across several sittings::
 ``run`` generates the cases it needs (``--cases N``: the first N of the seeded list;
 ``--only case_007``), ``report`` writes ``detection_power.md``, ``results.csv`` and the
 figures (confusion matrix, identification rate against effect size per effect).
+
+Each finished case's ``result.json`` is also kept, small, in the repository
+(``--results``, default ``studies/results/detection_cases/case_NNN.json``): a sitting
+skips the cases found there, and ``report`` reads them, so the study accumulates across
+sittings on fresh machines (``runs/`` holds the generated logs and the diagnosis
+folders, and is not committed).
 """
 
 from __future__ import annotations
@@ -40,6 +46,8 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import detection_generator as gen  # noqa: E402
 
 EFFECTS = gen.EFFECTS
+#: where each finished case's result is kept (committed; a sitting skips these cases)
+RESULTS = "studies/results/detection_cases"
 
 
 def run_case(
@@ -152,10 +160,13 @@ def cmd_run(args) -> int:
         cases = cases[: args.cases]
     from tqdm.auto import tqdm
 
+    kept = pathlib.Path(args.results)
+    kept.mkdir(parents=True, exist_ok=True)
     for spec in tqdm(cases, desc="detection study", unit="case"):
-        if (out / spec["case_id"] / "result.json").exists():
+        if (kept / f"{spec['case_id']}.json").exists():
             continue
         r = run_case(spec, data, out, time_limit=args.time_limit)
+        (kept / f"{spec['case_id']}.json").write_text(json.dumps(r, indent=1))
         tqdm.write(
             f"{spec['case_id']}: hidden {'+'.join(r['hidden']) or 'none'} -> "
             f"{'+'.join(r.get('found', [])) or r.get('final_verdict', r.get('crash'))} "
@@ -175,16 +186,16 @@ def size_at_90(sizes, ok, min_cases: int = 3) -> str:
     return f"90 % not reached with >= {min_cases} cases ({len(pairs)} cases so far)"
 
 
-def _load(out: pathlib.Path) -> list[dict]:
-    return [json.loads(p.read_text()) for p in sorted(out.glob("case_*/result.json"))]
+def _load(kept: pathlib.Path) -> list[dict]:
+    return [json.loads(p.read_text()) for p in sorted(kept.glob("case_*.json"))]
 
 
 def cmd_report(args) -> int:
-    out, to = pathlib.Path(args.out), pathlib.Path(args.to)
+    kept, to = pathlib.Path(args.results), pathlib.Path(args.to)
     to.mkdir(parents=True, exist_ok=True)
-    results = _load(out)
+    results = _load(kept)
     if not results:
-        print(f"no results under {out}", file=sys.stderr)
+        print(f"no results under {kept}", file=sys.stderr)
         return 1
     with open(to / "results.csv", "w", newline="") as fh:
         w = csv.writer(fh)
@@ -339,9 +350,10 @@ def main(argv: list[str] | None = None) -> int:
         "--time-limit", type=float, default=1200.0,
         help="seconds one case may take before it is stopped and counted as failed",
     )  # fmt: skip
+    r.add_argument("--results", default=RESULTS, help="each case's result (committed)")
     r.set_defaults(func=cmd_run)
     q = sub.add_parser("report", help="summarise the results")
-    q.add_argument("--out", default="runs/detection", help="results of `run`")
+    q.add_argument("--results", default=RESULTS, help="each case's result, from `run`")
     q.add_argument("--to", default="studies/results", help="where the report goes")
     q.set_defaults(func=cmd_report)
     args = p.parse_args(argv)
