@@ -189,3 +189,27 @@ def test_lookahead_does_not_keep_a_stand_in(short_fit, monkeypatch):
         logs, base=dataclasses.replace(base, effects=[]), lookahead=False
     )
     assert dg.final_verdict(steps) == "unexplained" and steps[-1].lookahead == []
+
+
+def test_lookahead_says_when_the_provisional_effect_is_dropped_again(short_fit, monkeypatch):
+    """With the provisional effect in, the larger one is found and then explains the
+    smaller one's part too (the backward check drops it): the reason says so, and the
+    provisional effect is not among the effects kept."""
+    logs, base = short_fit
+    _scripted_iteration(base, monkeypatch, second_finds="stick_slip")
+    reduced = dataclasses.replace(base, effects=["stick_slip"])
+
+    def drop_mast(model, logs_, candidates, *a, **k):
+        return ("mast_compliance", 3.0, reduced) if "mast_compliance" in candidates else None
+
+    def misfit(m, usable=()):  # here stick-slip alone reaches the noise floor
+        floor = "stick_slip" in m.effects
+        return dg.RemainingMisfit(1.0 if floor else 3.5, 1000, 1.0, 0.0 if floor else 50.0,
+                                  None, 0, None, None, not floor)  # fmt: skip
+
+    monkeypatch.setattr(dg, "backward_check", drop_mast)
+    monkeypatch.setattr(dg, "remaining_misfit", misfit)
+    steps = dg.diagnose_iteratively(logs, base=dataclasses.replace(base, effects=[]))
+    assert "dropped" in steps[0].reasons[0] and "kept because" not in steps[0].reasons[0]
+    kept = [v for v in dg.found_effects(steps) if not any(v in d.dropped for d in steps)]
+    assert kept == ["stick_slip"]

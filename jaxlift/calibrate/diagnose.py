@@ -755,11 +755,21 @@ def diagnose_iteratively(
             )  # fmt: skip
             if final_verdict(more) == "none" and found_effects(more):
                 last.verdict, last.winner_fit = s0.effect, fit0
-                last.reasons = [
-                    f"{s0.effect} alone removed only {100 * (s0.explained_share or 0):.0f} % "
-                    f"of the error; kept because with it {', '.join(found_effects(more))} "
-                    "was found and the error reached the sensor-noise floor"
-                ]
+                later = ", ".join(found_effects(more))
+                share = f"{s0.effect} alone removed only {100 * (s0.explained_share or 0):.0f} %"
+                if any(s0.effect in m.dropped for m in more):
+                    # a stepping stone: with it the larger effect was found, which then
+                    # explained its part too (the backward check of the later step)
+                    why = (
+                        f"{share} of the error; added provisionally, with it {later} was "
+                        f"found, which then made {s0.effect} unnecessary (dropped)"
+                    )
+                else:
+                    why = (
+                        f"{share} of the error; kept because with it {later} was found and "
+                        "the error reached the sensor-noise floor"
+                    )
+                last.reasons = [why]
                 say("lookahead: " + last.reasons[0])
                 return [*steps, *more]
             why = (
