@@ -241,8 +241,9 @@ def cmd_report(args) -> int:
     lines.append(
         f"{n} cases diagnosed (of the seeded list of 100; the study is resumable). "
         f"Median time per case {times[len(times) // 2]:.0f} s "
-        f"(min {times[0]:.0f}, max {times[-1]:.0f}) on this machine (2 cores), each case a "
-        "fresh `jaxlift diagnose` process, compilation included."
+        f"(min {times[0]:.0f}, max {times[-1]:.0f}), each case a fresh `jaxlift diagnose` "
+        "process, compilation included, on the cores a sitting gave it (studies/DETECTION.md "
+        "says per sitting: one or two cores, shared or not)."
     )
     lines.append("")
     lines.append(
