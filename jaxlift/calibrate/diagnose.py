@@ -740,9 +740,11 @@ def diagnose_iteratively(
             base = reduced
     last = steps[-1]
     room = max_effects - len(found_effects(steps))
+    misfit0 = None  # the final model's misfit when it ends on none (computed once)
     if lookahead and last.verdict == "none" and last.partial and room >= 2:
         usable, _ = usable_heldout(logs, validate_logs)
-        if remaining_misfit(last.base_fit, usable).significant:
+        misfit0 = remaining_misfit(last.base_fit, usable)
+        if misfit0.significant:
             s0, fit0 = last.partial[0]
             say(
                 f"lookahead: {s0.effect} passed the tests but removed only "
@@ -784,7 +786,9 @@ def diagnose_iteratively(
     if last.verdict == "none" or named:
         usable, _ = usable_heldout(logs, validate_logs)
         final_model = last.winner_fit if named else last.base_fit
-        last.misfit = remaining_misfit(final_model, usable)
+        last.misfit = (
+            misfit0 if misfit0 is not None and not named else remaining_misfit(final_model, usable)
+        )
         if last.misfit.significant:
             if not named:
                 last.verdict = "unexplained"
