@@ -129,3 +129,25 @@ def test_air_histogram_zooms_on_the_posterior_and_points_to_a_far_threshold():
     wide = rng.normal(0.8, 0.2, 4000)
     x0, x1, shown = air_axis(wide, 1.0)
     assert shown and x0 < 0.3 and x1 > 1.0
+
+
+def test_summary_points_to_the_tuning_section_by_its_title():
+    """The one-line robust verdict sends the reader to the per-case figures: by the title
+    the combined report gives the tuning section, not by a number written twice."""
+    from jaxlift.workflows.report import SECTION_TITLES, STAGES, write_summary
+
+    summary = {
+        "quick": False, "verdict": "none", "screen": None, "missing_effects": [],
+        "evidence": [], "reasons": [], "chi2_nominal": 9.0, "chi2_baseline": 1.1,
+        "chi2_final": None, "air": None, "beta": None, "posterior_mode": "mcmc",
+        "posterior_converged": True, "gains": {"Kp": 1.0, "Ki": 0.5, "Kd": 0.0},
+        "gains_name": "robust", "cost_current": 2.0, "cost_recommended": 1.0,
+        "robust_verdict": {"short": "robust gains: better on 9 of 10 draws", "text": "-"},
+    }  # fmt: skip
+    rep = Report("summary")
+    write_summary(rep, summary, held_out=[])
+    text = rep.to_markdown()
+    assert "Robust gains: better on 9 of 10 draws" in text
+    assert f"section “{SECTION_TITLES['tune']}”" in text
+    # the sections are numbered in the order the report includes them
+    assert [SECTION_TITLES[s].split(".")[0] for s in STAGES] == ["1", "2", "3", "4"]

@@ -61,6 +61,13 @@ from .tune import run_tune
 
 #: The stages, in order.
 STAGES = ("fit", "diagnose", "posterior", "tune")
+#: The report's sections, one per stage, in order (the summary refers to them by title).
+SECTION_TITLES = {
+    "fit": "1. The baseline model against the logs: where it fails",
+    "diagnose": "2. Which physical effect is missing",
+    "posterior": "3. How sure: the posterior of the diagnosed model",
+    "tune": "4. Gains for the lift controller",
+}
 STAGE_FILE = "stage.json"
 
 
@@ -394,14 +401,8 @@ def run_report(
     summary["stage_wall_s"] = timings
     rep = Report("jaxlift report: " + ", ".join(lg.name for lg in fit_logs))
     write_summary(rep, summary, [lg.name for lg in validate_logs])
-    titles = {
-        "fit": "1. The baseline model against the logs: where it fails",
-        "diagnose": "2. Which physical effect is missing",
-        "posterior": "3. How sure: the posterior of the diagnosed model",
-        "tune": "4. Gains for the lift controller",
-    }
     for name in STAGES:
-        rep.include(Report.read(out / name), title=titles[name])
+        rep.include(Report.read(out / name), title=SECTION_TITLES[name])
     rep.write(out)
     (out / "summary.json").write_text(json.dumps(json_safe(summary), indent=1) + "\n")
     say(f"wrote {out / 'report.html'} (self-contained), {out / 'summary.json'}")
@@ -548,6 +549,10 @@ def write_summary(rep: Report, s: dict, held_out: Sequence[str]) -> None:
         short = rv.get("short")  # the per-case figures are in the tuning section
         lines.append(
             "**Robust or nominal?** "
-            + (short[0].upper() + short[1:] + " Per case: section 4." if short else rv["text"])
+            + (
+                f"{short[0].upper()}{short[1:]} Per case: section “{SECTION_TITLES['tune']}”."
+                if short
+                else rv["text"]
+            )
         )
     rep.text("\n".join(f"- {x}" for x in lines))
