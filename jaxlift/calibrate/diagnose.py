@@ -81,6 +81,9 @@ class EffectScreen:
     failure: str | None = None  # why this candidate could not be screened or refitted
     #: the share of the fitted logs' error above the noise (chi2 - N) the refit removed
     explained_share: float | None = None
+    #: why a candidate that passed the BIC was not kept (one of the other two tests
+    #: failed): such a candidate may be one of two missing effects (Diagnosis.partial)
+    not_kept: str | None = None
 
     def as_dict(self) -> dict:
         return {k: v for k, v in dataclasses.asdict(self).items()}
@@ -109,12 +112,18 @@ class Diagnosis:
     #: the error left by the final model (set on the last step of
     #: :func:`diagnose_iteratively`): see :func:`remaining_misfit`
     misfit: RemainingMisfit | None = None
-    #: candidates that passed the BIC and held-out tests but removed less than
-    #: :data:`MIN_SHARE` of a significant error, with their refits (best first): the
-    #: smaller of two missing effects looks like this (see :func:`diagnose_iteratively`)
+    #: candidates that passed the BIC but failed exactly one of the other two tests,
+    #: with their refits (best first): those that removed less than :data:`MIN_SHARE`
+    #: of a significant error (the smaller of two missing effects looks like this), and
+    #: those that removed most of it but did not predict the held-out logs better (the
+    #: larger of two does, when the held-out error comes from the other one). Each
+    #: says why in :attr:`EffectScreen.not_kept`; see :func:`diagnose_iteratively`
     partial: list[tuple[EffectScreen, FitResult]] = dataclasses.field(default_factory=list)
     #: what the lookahead of :func:`diagnose_iteratively` tried and why it was not kept
     lookahead: list[str] = dataclasses.field(default_factory=list)
+    #: with verdict "undecided": the refits with each of ``undecided_between`` (same
+    #: order), to judge what the model with either would leave
+    undecided_fits: list[FitResult] = dataclasses.field(default_factory=list)
 
     def explained_share(self) -> float | None:
         """The share of the model error (chi2/N above the noise floor of 1) that the
@@ -294,7 +303,7 @@ def diagnose(
     excess = base.chi2 - base.n_residuals  # the error above the sensor-noise floor
     to_confirm = [s for s in ranking if s.z > z_threshold][:n_confirm]  # None: all
     held_before: list = []  # the current model's held-out error, computed once
-    partial: list[tuple[EffectScreen, FitResult]] = []  # real but not material (below)
+    partial: list[tuple[EffectScreen, FitResult]] = []  # one test short (below)
 
     def confirm(to_confirm: list[EffectScreen]) -> list[tuple[EffectScreen, FitResult]]:
         """Refit each candidate from its starts; the ones that pass both tests."""
@@ -391,11 +400,24 @@ def diagnose(
             material = not misfit.significant or (
                 s.explained_share is not None and s.explained_share >= MIN_SHARE
             )
-            if s.delta_bic < -bic_threshold and held_ok and not material:
-                say(
-                    f"confirm {s.effect}: removes only {s.explained_share or 0:.1%} of the "
-                    f"error above the noise (needs {MIN_SHARE:.0%}): not kept"
-                )
+            if s.delta_bic < -bic_threshold and held_ok != material:
+                # one test short: possibly one of two missing effects (the lookahead of
+                # diagnose_iteratively). Measured (detection study, case_014: hose
+                # compliance beside a 13 ms input delay): hose compliance removed 95 %
+                # of the fitted error, dBIC -9253, but the held-out log's error came
+                # from the delay (chi2/N 19.3 -> 19.5 with hose compliance alone)
+                if held_ok:
+                    s.not_kept = (
+                        f"removes only {s.explained_share or 0:.1%} of the error above the "
+                        f"noise (needs {MIN_SHARE:.0%})"
+                    )
+                else:
+                    s.not_kept = (
+                        f"removes {s.explained_share or 0:.0%} of the error but predicts the "
+                        f"held-out logs no better (chi2/N {s.heldout_chi2_before:.4g} -> "
+                        f"{s.heldout_chi2_after:.4g})"
+                    )
+                say(f"confirm {s.effect}: {s.not_kept}: not kept")
                 partial.append((s, best))
             if s.delta_bic < -bic_threshold and held_ok and material:
                 passing.append((s, best))
@@ -417,6 +439,7 @@ def diagnose(
         passing = confirm(rest)
     winner, between, reasons = decide([s for s, _ in passing], bic_threshold)
     winner_fit = next((f for s, f in passing if s.effect == winner), None)
+    undecided_fits = [f for name in between for s, f in passing if s.effect == name]
     if winner == "undecided":
         say("undecided: " + "; ".join(reasons))
     confirmed = [s for s in ranking if s.delta_bic is not None]
@@ -435,6 +458,7 @@ def diagnose(
         reasons=reasons,
         heldout_excluded=excluded,
         partial=sorted(partial, key=lambda sb: sb[0].delta_bic),
+        undecided_fits=undecided_fits,
     )
 
 
@@ -709,14 +733,17 @@ def diagnose_iteratively(
     instead of fitting it here.
 
     ``lookahead``: when the iteration would end ``unexplained`` and a candidate passed
-    the BIC and held-out tests but removed too small a share of the error to be kept
-    (:attr:`Diagnosis.partial`: the smaller of two missing effects looks like this while
-    the larger is not in the model), that candidate is added provisionally and the
-    iteration goes on from there. It is kept only if the iteration then ends at the
-    sensor-noise floor (``none`` with no significant misfit); otherwise the first
-    ending stands and the attempt is recorded in :attr:`Diagnosis.lookahead`. A
-    stand-in for a law outside the eight does not reach the noise floor with any
-    second candidate, so it is still not named."""
+    the BIC but failed one of the other two tests (:attr:`Diagnosis.partial`: it removed
+    too small a share of the error -- the smaller of two missing effects looks like this
+    while the larger is not in the model -- or it did not predict the held-out logs
+    better, where their error comes from the other missing effect), the one with the
+    largest BIC drop is added provisionally and the iteration goes on from there. It
+    is kept only if the iteration then ends at the sensor-noise floor (``none`` with
+    no significant misfit, or ``undecided`` between two candidates the better of which
+    leaves no significant misfit); otherwise the first ending stands and the attempt is
+    recorded in :attr:`Diagnosis.lookahead`. A stand-in for a law outside the eight
+    does not reach the noise floor with any second candidate, so it is still not
+    named."""
     say = progress or (lambda _s: None)
     steps: list[Diagnosis] = []
     effects: list[str] = [] if base is None else list(base.effects)
@@ -746,37 +773,42 @@ def diagnose_iteratively(
         misfit0 = remaining_misfit(last.base_fit, usable)
         if misfit0.significant:
             s0, fit0 = last.partial[0]
-            say(
-                f"lookahead: {s0.effect} passed the tests but removed only "
-                f"{100 * (s0.explained_share or 0):.0f} % of the error; adding it "
-                "provisionally"
-            )
+            say(f"lookahead: {s0.effect} {s0.not_kept}; adding it provisionally")
             more = diagnose_iteratively(
                 logs, validate_logs, max_effects=room - 1, bic_threshold=bic_threshold,
                 base=fit0, progress=progress, lookahead=False, **kwargs,
             )  # fmt: skip
-            if final_verdict(more) == "none" and found_effects(more):
+            ends, later = final_verdict(more), found_effects(more)
+            if ends == "undecided" and more[-1].undecided_fits:
+                # the second effect is there, only which of two candidates it is cannot
+                # be told (measured, case_014: after hose compliance, a 13 ms input delay
+                # and a 13 ms motor lag 1.4 apart in BIC, both taking the held-out
+                # chi2/N from 19.5 to 1.0): judged by what the better of the two leaves
+                reached = not remaining_misfit(more[-1].undecided_fits[0], usable).significant
+                later = [*later, " or ".join(more[-1].undecided_between) + " (undecided which)"]
+            else:
+                reached = ends == "none" and bool(later)
+            if reached:
                 last.verdict, last.winner_fit = s0.effect, fit0
-                later = ", ".join(found_effects(more))
-                share = f"{s0.effect} alone removed only {100 * (s0.explained_share or 0):.0f} %"
+                later = ", ".join(later)
+                alone = f"{s0.effect} alone {s0.not_kept}"
                 if any(s0.effect in m.dropped for m in more):
                     # a stepping stone: with it the larger effect was found, which then
                     # explained its part too (the backward check of the later step)
                     why = (
-                        f"{share} of the error; added provisionally, with it {later} was "
+                        f"{alone}; added provisionally, with it {later} was "
                         f"found, which then made {s0.effect} unnecessary (dropped)"
                     )
                 else:
                     why = (
-                        f"{share} of the error; kept because with it {later} was found and "
+                        f"{alone}; kept because with it {later} was found and "
                         "the error reached the sensor-noise floor"
                     )
                 last.reasons = [why]
                 say("lookahead: " + last.reasons[0])
                 return [*steps, *more]
             why = (
-                f"{s0.effect} (removing {100 * (s0.explained_share or 0):.0f} % of the error)"
-                f" was added provisionally; the iteration then ended "
+                f"{s0.effect} ({s0.not_kept}) was added provisionally; the iteration then ended "
                 f"{final_verdict(more)} after {', '.join(found_effects(more)) or 'nothing'}"
                 ", not at the noise floor: not kept"
             )
