@@ -200,13 +200,14 @@ def cmd_report(args) -> int:
     with open(to / "results.csv", "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["case_id", "kind", "hidden", "sizes", "found", "final", "outcome",
-                    "baseline_chi2n", "wall_s"])  # fmt: skip
+                    "baseline_chi2n", "wall_s", "commit"])  # fmt: skip
         for r in results:
             w.writerow([
                 r["case_id"], r["kind"], "+".join(r["hidden"]) or "none",
                 json.dumps(r["sizes"]), "+".join(r.get("found", [])) or "none",
                 r.get("final_verdict", ""), outcome(r),
                 f"{r.get('baseline_chi2n', float('nan')):.4g}", f"{r['wall_s']:.1f}",
+                r.get("commit", "?"),
             ])  # fmt: skip
     labels = ["none", *EFFECTS, "pair", "crash"]
     conf = np.zeros((len(labels), len(labels)), dtype=int)
