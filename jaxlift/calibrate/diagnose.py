@@ -778,19 +778,19 @@ def diagnose_iteratively(
                 logs, validate_logs, max_effects=room - 1, bic_threshold=bic_threshold,
                 base=fit0, progress=progress, lookahead=False, **kwargs,
             )  # fmt: skip
-            ends, later = final_verdict(more), found_effects(more)
+            ends, after = final_verdict(more), found_effects(more)
             if ends == "undecided" and more[-1].undecided_fits:
                 # the second effect is there, only which of two candidates it is cannot
                 # be told (measured, case_014: after hose compliance, a 13 ms input delay
                 # and a 13 ms motor lag 1.4 apart in BIC, both taking the held-out
                 # chi2/N from 19.5 to 1.0): judged by what the better of the two leaves
                 reached = not remaining_misfit(more[-1].undecided_fits[0], usable).significant
-                later = [*later, " or ".join(more[-1].undecided_between) + " (undecided which)"]
+                after = [*after, " or ".join(more[-1].undecided_between) + " (undecided which)"]
             else:
-                reached = ends == "none" and bool(later)
+                reached = ends == "none" and bool(after)
             if reached:
                 last.verdict, last.winner_fit = s0.effect, fit0
-                later = ", ".join(later)
+                later = ", ".join(after)
                 alone = f"{s0.effect} alone {s0.not_kept}"
                 if any(s0.effect in m.dropped for m in more):
                     # a stepping stone: with it the larger effect was found, which then
@@ -809,7 +809,7 @@ def diagnose_iteratively(
                 return [*steps, *more]
             why = (
                 f"{s0.effect} ({s0.not_kept}) was added provisionally; the iteration then ended "
-                f"{final_verdict(more)} after {', '.join(found_effects(more)) or 'nothing'}"
+                f"{ends} after {', '.join(found_effects(more)) or 'nothing'}"
                 ", not at the noise floor: not kept"
             )
             last.lookahead.append(why)
