@@ -66,6 +66,7 @@ from .model.inputs import Inputs, initial_height
 from .model.log import Log, read_log, write_log
 from .model.log_validation import LogError, UnusedColumnsWarning
 from .model.measurement import MeasurementModel, measure, to_log
+from .model.nudging import Nudging
 from .model.params import (
     ParameterError,
     ParamInfo,
@@ -220,6 +221,7 @@ __all__ = [
     "load_entry_point_effects",
     "replace_params",
     "save_params_json",
+    "Nudging",
     "simulate",
     "to_log",
     "to_unconstrained",

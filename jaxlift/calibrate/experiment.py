@@ -17,6 +17,7 @@ from ..model.effects import AbstractEffect
 from ..model.inputs import Inputs
 from ..model.log import Log
 from ..model.measurement import MeasurementModel
+from ..model.nudging import Nudging
 from ..model.params import ParameterError
 from ..model.plant import Plant
 from ..model.simulate import simulate
@@ -137,11 +138,21 @@ def residuals(
     experiments: Sequence[Experiment],
     *,
     adjoint: diffrax.AbstractAdjoint | None = None,
+    nudge_gain: Float[Array, ""] | float | None = None,
     **simulate_kwargs,
 ) -> list[Float[Array, " M"]]:
-    """Scaled residuals (model - measured) / sigma, one vector per experiment."""
+    """Scaled residuals (model - measured) / sigma, one vector per experiment.
+
+    ``nudge_gain`` [1/s]: simulate each log pulled towards its own measurements
+    (:mod:`jaxlift.model.nudging`); None: the model itself."""
     out = []
     for exp in experiments:
-        sol = simulate(plant, effects, exp.inputs, adjoint=adjoint, **simulate_kwargs)
+        nudging = None
+        if nudge_gain is not None:
+            speed = exp.y[1] if 1 in exp.signals else None
+            nudging = Nudging.of(exp.inputs.ts, exp.y[0], speed, nudge_gain)
+        sol = simulate(
+            plant, effects, exp.inputs, adjoint=adjoint, nudging=nudging, **simulate_kwargs
+        )
         out.append(_solution_residuals(sol, exp))
     return out

@@ -40,6 +40,9 @@ class Problem:
     #: that need it are slow (stiff stick-slip: ~1.7x longer diagnoses, measured).
     sim_max_steps: int = 200_000
     fit_x0: bool = True
+    #: simulate each log pulled towards its measurements with this gain [1/s]
+    #: (:mod:`jaxlift.model.nudging`: the stages of a synchronised fit); None: the model
+    nudge_gain: float | None = None
 
     @property
     def n_x0(self) -> int:
@@ -60,7 +63,7 @@ class Problem:
     @property
     def spec(self) -> tuple:
         """The static part of the residual function (hashable: jit caches on it)."""
-        return (self.infos, self.fit_x0, self.sim_max_steps)
+        return (self.infos, self.fit_x0, self.sim_max_steps, self.nudge_gain is not None)
 
     def residual_fn(self) -> Callable:
         """``(theta, args) -> r``, for optimistix and the score tests."""
@@ -94,12 +97,14 @@ class Problem:
 
     @property
     def args(self):
-        return (self.plant, self.effects, self.experiments)
+        # the gain is traced, not static: one compilation serves every gain
+        gain = jnp.asarray(self.nudge_gain or 0.0, dtype=jnp.float64)
+        return (self.plant, self.effects, self.experiments, gain)
 
 
 def _residual_body(theta, args, spec):
-    infos, fit_x0, sim_max_steps = spec
-    plant, effects, experiments = args
+    infos, fit_x0, sim_max_steps, nudged = spec
+    plant, effects, experiments, gain = args
     p = len(infos)
     values = {i.name: from_unconstrained(i, theta[k]) for k, i in enumerate(infos)}
     plant, effects = with_params(plant, effects, values)
@@ -109,8 +114,9 @@ def _residual_body(theta, args, spec):
             for k, exp in enumerate(experiments)
         )
     rs = residuals(
-        plant, effects, experiments, adjoint=diffrax.ForwardMode(), max_steps=sim_max_steps
-    )
+        plant, effects, experiments, adjoint=diffrax.ForwardMode(), max_steps=sim_max_steps,
+        nudge_gain=gain if nudged else None,
+    )  # fmt: skip
     return jnp.concatenate(rs)
 
 

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 
 from .effects import AbstractEffect
 from .inputs import Inputs
+from .nudging import Nudging
 from .plant import Plant
 from .solution import RANGE_TOLERANCE_M, Solution
 from .stepping import JumpStepSizeController, StabilityLimitedController
@@ -59,9 +60,21 @@ def error_norm(scaled_error):
     return jnp.where(jnp.isnan(base), jnp.inf, base)
 
 
+def nudged_vector_field(t, y, args):
+    """The vector field plus a :class:`~jaxlift.model.nudging.Nudging` term."""
+    plant, effects, inputs, nudging = args
+    return lift_vector_field(t, y, (plant, effects, inputs)) + nudging.correction(t, y)
+
+
 @eqx.filter_jit
-def _solve(plant, effects, inputs, solver, rtol, atol_base, max_steps, adjoint, stability_limit):
+def _solve(
+    plant, effects, inputs, solver, rtol, atol_base, max_steps, adjoint, stability_limit, nudging
+):
     y0 = initial_state(plant, effects, inputs)
+    if nudging is None:
+        field, args = lift_vector_field, (plant, effects, inputs)
+    else:
+        field, args = nudged_vector_field, (plant, effects, inputs, nudging)
     scales = [jnp.asarray(e.state_scales, dtype=jnp.float64) for e in effects]
     atol = jnp.concatenate([atol_base, *[s * 1.0 for s in scales]]) if effects else atol_base
     delay = sum((e.delay() for e in effects), jnp.zeros(()))
@@ -73,16 +86,16 @@ def _solve(plant, effects, inputs, solver, rtol, atol_base, max_steps, adjoint, 
     # error to control, but its forward-mode sensitivities do (see _stepping.py)
     inner = diffrax.PIDController(rtol=rtol, atol=atol, dtmax=DTMAX, norm=error_norm)
     if stability_limit:
-        inner = StabilityLimitedController(inner, lift_vector_field, atol)
+        inner = StabilityLimitedController(inner, field, atol)
     controller = JumpStepSizeController(inner, inputs.jump_ts + delay)
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(lift_vector_field),
+        diffrax.ODETerm(field),
         solver,
         t0=inputs.ts[0],
         t1=inputs.ts[-1],
         dt0=None,
         y0=y0,
-        args=(plant, effects, inputs),
+        args=args,
         saveat=diffrax.SaveAt(ts=inputs.ts),
         stepsize_controller=controller,
         max_steps=max_steps,
@@ -122,6 +135,7 @@ def simulate(
     max_steps: int = 200_000,
     adjoint: diffrax.AbstractAdjoint | None = None,
     stability_limit: bool = True,
+    nudging: Nudging | None = None,
 ) -> Solution:
     """Simulate one test run of the lift.
 
@@ -142,6 +156,9 @@ def simulate(
             not (they explode; see ``_stepping.py``). ``False`` is for value-only work
             (posterior sampling, predictive bands, plots); the solution then still meets
             ``rtol``/``atol``.
+        nudging: pull the simulation towards a log's measurements (an observer term, not
+            physics: a device for fitting on rough least-squares surfaces, see
+            :mod:`jaxlift.model.nudging`); None (default) is the model itself.
 
     Returns:
         A :class:`Solution`; it never raises on solver failure -- check ``sol.ok``
@@ -156,5 +173,6 @@ def simulate(
     effects = canonical_effects(effects)
     atol_base = jnp.asarray(atol, dtype=jnp.float64)
     return _solve(
-        plant, effects, inputs, solver, rtol, atol_base, max_steps, adjoint, stability_limit
-    )
+        plant, effects, inputs, solver, rtol, atol_base, max_steps, adjoint, stability_limit,
+        nudging,
+    )  # fmt: skip
