@@ -57,6 +57,13 @@ def test_a_gain_pulls_a_wrong_model_onto_the_data(with_speed):
     assert weak < 0.3 * free and strong < weak
 
 
+def test_synchronise_rejects_bad_gains_and_the_optimistix_solver():
+    with pytest.raises(ValueError, match="finite and >= 0"):
+        jl.fit([], synchronise=(3.0, -1.0))
+    with pytest.raises(ValueError, match="solver=LM"):
+        jl.fit([], synchronise=(3.0,), solver=jl.OptimistixLM())
+
+
 @pytest.mark.slow
 def test_synchronised_fit_of_a_stick_slip_log_reaches_the_truth():
     """A 1.2 kN breakaway force at a Stribeck speed of 4 mm/s on a slow lift (the fork

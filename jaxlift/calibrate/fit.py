@@ -19,6 +19,7 @@ the result).
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 
@@ -211,6 +212,11 @@ def fit(
         rtol, atol, vectorize = solver.rtol, solver.atol, solver.vectorize
     else:
         raise TypeError(f"solver must be LM() or OptimistixLM(), not {solver!r}")
+    synchronise = tuple(float(g) for g in synchronise)
+    if synchronise and method != "lm":
+        raise ValueError("synchronise: the pulled fits run jaxlift's own loop; use solver=LM()")
+    if not all(math.isfinite(g) and g >= 0.0 for g in synchronise):
+        raise ValueError(f"synchronise: gains [1/s] must be finite and >= 0, got {synchronise}")
     experiments = (
         list(logs)
         if logs and isinstance(logs[0], Experiment)
