@@ -12,6 +12,8 @@ the end, the full-simulation chi2/N (offsets fitted) at the parameters reached.
     python studies/stick_slip_synchronised.py runs/detection/data/case_010 \\
         runs/detection/case_010/diagnosis/diagnosis.json --dfs 1000 --vs 0.01
 
+The residuals and Jacobians are those of the fit's own problem
+(``jaxlift.calibrate.problem.Problem`` with ``nudge_gain``).
 ``jaxlift.fit(..., synchronise=...)`` does the same with jaxlift's own
 Levenberg--Marquardt loop (damping scaled by the Jacobian, 30 trial steps per gain,
 offsets fitted): on the case above it did *not* reach the optimum (DETECTION.md), so
@@ -21,6 +23,7 @@ the path through the gains matters.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import pathlib
 import sys
@@ -30,13 +33,12 @@ import jax
 
 jax.config.update("jax_enable_x64", True)  # a program's start: the place to do it
 
-import diffrax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxlift as jl  # noqa: E402
-from jaxlift.calibrate.experiment import make_experiments, residuals  # noqa: E402
+from jaxlift.calibrate.experiment import make_experiments  # noqa: E402
 from jaxlift.calibrate.fit import offsets_and_chi2n  # noqa: E402
+from jaxlift.calibrate.problem import Problem  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 from stick_slip_shooting import damped_step  # noqa: E402
@@ -70,21 +72,13 @@ def main() -> int:
         init.update(cf_con=10.0, d=300.0)
     plant0, effs0 = jl.with_params(jl.Plant(), effects, init)
     logs = [jl.read_log(case / "fit_1.csv"), jl.read_log(case / "fit_2.csv")]
-    experiments = make_experiments(logs)
-
-    def res(phys, gain):
-        values = {i.name: jl.from_unconstrained(i, phys[k]) for k, i in enumerate(infos)}
-        plant, effs = jl.with_params(plant0, effs0, values)
-        rs = residuals(plant, effs, experiments, nudge_gain=gain,
-                       adjoint=diffrax.ForwardMode(), max_steps=400_000)  # fmt: skip
-        return jnp.concatenate(rs)
-
-    f_res = jax.jit(res)
-    f_jac = jax.jit(jax.jacfwd(res))
+    # the fit's own least-squares problem (no initial-height offsets), pulled at each gain
+    problem = Problem(plant0, effs0, tuple(make_experiments(logs)), FREE, tuple(infos),
+                      sim_max_steps=400_000, fit_x0=False)  # fmt: skip
 
     def evaluate(phys, gain, jacobian=False):
-        r = np.asarray(f_res(jnp.asarray(phys), gain))
-        return (r, np.asarray(f_jac(jnp.asarray(phys), gain))) if jacobian else r
+        pulled = dataclasses.replace(problem, nudge_gain=gain)
+        return pulled.jacobian_at(phys) if jacobian else pulled.residuals_at(phys)
 
     t0 = time.time()
     phys = np.array([float(jl.to_unconstrained(i, init[i.name])) for i in infos])

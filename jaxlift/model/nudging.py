@@ -61,12 +61,10 @@ class Nudging(eqx.Module):
 
     def correction(self, t: Float[ArrayLike, ""], y: Float[Array, " S"]) -> Float[Array, " S"]:
         """The term added to ``dy/dt`` at ``(t, y)`` (zero but for height and speed)."""
-        i = jnp.clip(jnp.searchsorted(self.ts, t, side="right") - 1, 0, self.ts.shape[0] - 2)
-        f = (t - self.ts[i]) / (self.ts[i + 1] - self.ts[i])
-        ex = self.height[i] + f * (self.height[i + 1] - self.height[i]) - y[0]
+        ex = jnp.interp(t, self.ts, self.height) - y[0]
         g = self.gain
         if self.has_speed:
-            ev = self.speed[i] + f * (self.speed[i + 1] - self.speed[i]) - y[1]
+            ev = jnp.interp(t, self.ts, self.speed) - y[1]
             dx, dv = g * ex, g * ev
         else:
             dx, dv = 2.0 * g * ex, g**2 * ex
