@@ -83,6 +83,31 @@ def test_explain_finds_a_planted_law_and_flags_model_terms():
     law_up = explain(y_up, only_up, name="force", unit="N")
     assert {law_up.leading, *law_up.alternatives} >= {"p", "p sign(v)"}, law_up.describe()
     assert "cannot be told from" in law_up.describe()
+    # logs that lift and rest, holding the load at the pressure of lifting, with the
+    # law's mean over lifting absorbed by cf_con in the fit: p sign(v) + a shift of
+    # sign(v) is then p + a constant (the outside-the-eight study's seal friction),
+    # though the two columns are far from collinear (the rests differ)
+    rest = rng.uniform(size=n) < 0.3
+    lift = {**states, "v": np.where(rest, 0.0, np.abs(v) + 0.01),
+            "p": np.where(rest, 10.5e6 + rng.normal(0, 2e5, n), states["p"])}  # fmt: skip
+    sg = np.tanh(lift["v"] / 1e-3)
+    y_lift = -6e-5 * (lift["p"] - np.mean(lift["p"][~rest])) * sg + rng.normal(0, 20.0, n)
+    law_lift = explain(y_lift, lift, name="force", unit="N")
+    assert {law_lift.leading, *law_lift.alternatives} >= {"p", "p sign(v)"}, law_lift.describe()
+    assert abs(np.corrcoef(lift["p"], lift["p"] * sg)[0, 1]) < 0.9
+    # a term that only shares the model's own sign(v) with the law is no alternative
+    # (pressure within ±15 %: p sign(v) is mostly sign(v), and so is a duty that is
+    # higher while lifting; the law's terms p sign(v) and sign(v) tell them apart)
+    flat = {
+        **lift,
+        "p": 10.5e6 + rng.normal(0, 1.5e6, n),
+        "u": 0.3 + 0.1 * (~rest) + rng.uniform(0, 0.1, n),
+    }
+    law_sg = explain(-6e-5 * flat["p"] * sg + 900.0 * sg + rng.normal(0, 15.0, n), flat,
+                     name="force", unit="N")  # fmt: skip
+    assert set(law_sg.coefs) == {"1", "sign(v)", "p sign(v)"}, law_sg.describe()
+    assert law_sg.alternatives == [], law_sg.describe()
+    assert abs(np.corrcoef(flat["u"], sg)[0, 1]) > 0.8  # u is mostly sign(v)
     with pytest.raises(ValueError, match="same length"):
         explain(y, states, weights=np.ones(3))
 

@@ -10,7 +10,8 @@ model has wrong) is in every subset and not counted in k. The leading term is th
 non-constant one whose contribution (coefficient times the term) has the largest
 standard deviation, among the terms the model does not already have where there are
 any (:data:`MODEL_TERMS`: those are shifts of the model's own parameters, which
-absorbed part of the missing law in the fit).
+absorbed part of the missing law in the fit). Terms the data cannot tell from the
+leading one are named with it (``Law.alternatives``; rule at :data:`ALIAS_CORR`).
 """
 
 from __future__ import annotations
@@ -22,8 +23,10 @@ from collections.abc import Callable, Mapping
 import numpy as np
 
 V_EPS = 1e-3  # m/s, the smoothing of sign(v) (as the plant's Coulomb friction)
-#: Two library terms whose weighted correlation over the data is at least this are
-#: reported as indistinguishable (``Law.alternatives``).
+#: A term that, in the leading term's place, explains at least ALIAS_CORR² (0.9) of
+#: what the leading term adds to the law's other terms is reported as one the data
+#: cannot tell from it (``Law.alternatives``): for a law of one term, the share one
+#: column explains of another at this correlation.
 ALIAS_CORR = 0.95
 
 #: The library: name -> (function of the states, unit of the term). States: ``t`` [s],
@@ -92,9 +95,12 @@ class Law:
     R² of the law; ``path``: the best R² for each number of terms tried. ``leading``: the
     term with the largest contribution; ``model_terms``: the chosen terms the model
     already has (with the parameter they shift); ``alternatives``: library terms that
-    the data cannot tell from the leading one (weighted correlation of the centred
-    columns at least :data:`ALIAS_CORR`: e.g. ``p`` and ``p sign(v)`` on logs that
-    only lift)."""
+    the data cannot tell from the leading one: in its place, free to shift one more of
+    the model's own parameters (:data:`MODEL_TERMS`), the term explains at least
+    ``ALIAS_CORR²`` of the weighted R² the leading term adds to the law's other terms
+    (e.g. ``p`` and ``p sign(v)`` on logs that only lift, or whose pressure at rest is
+    that of lifting: ``p sign(v)`` with a shift of ``cf_con`` is then ``p`` plus a
+    constant)."""
 
     signal: str
     unit: str
@@ -215,11 +221,23 @@ def explain(
     leading = max(contrib, key=contrib.get) if contrib else "1"
     alternatives = []
     if leading != "1":
-        lead = X[:, names.index(leading)]
+        rest = [names.index(t) for t in terms if t != leading]
+        shifts = [names.index(t) for t in model if t in names and t not in terms]
+        r2_rest = _wls(Xs[:, rest], yk, wk)[1]
         for n in names:
             if n in ("1", leading) or n in terms:
                 continue
-            if abs(_wcorr(lead, X[:, names.index(n)], wk)) >= ALIAS_CORR:
+            j = names.index(n)
+            # in the leading term's place, free to shift one more of the model's own
+            # parameters, n explains as much of the data beyond the law's other terms
+            # (at least ALIAS_CORR², the share one column explains of another at that
+            # correlation): e.g. p sign(v) + sign(v) against p + 1 on logs whose
+            # pressure at rest is that of lifting
+            r2_alt = max(
+                _wls(Xs[:, [*rest, j, *extra]], yk, wk)[1] - _wls(Xs[:, [*rest, *extra]], yk, wk)[1]
+                for extra in ([], *([m] for m in shifts if m != j))
+            )  # fmt: skip
+            if r2_alt >= ALIAS_CORR**2 * (r2 - r2_rest):
                 alternatives.append(n)
     return Law(
         signal=name, unit=unit, coefs=coefs, r2=r2,
@@ -227,14 +245,6 @@ def explain(
         model_terms={t: model[t] for t in terms if t in model}, min_gain=min_gain,
         alternatives=alternatives,
     )  # fmt: skip
-
-
-def _wcorr(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> float:
-    """Weighted correlation of two columns (centred with the weights)."""
-    wn = w / np.sum(w)
-    da, db = a - np.sum(wn * a), b - np.sum(wn * b)
-    den = np.sqrt(np.sum(wn * da**2) * np.sum(wn * db**2))
-    return float(np.sum(wn * da * db) / den) if den > 0 else 0.0
 
 
 def dependence(
