@@ -223,7 +223,9 @@ def explain(
     if leading != "1":
         rest = [names.index(t) for t in terms if t != leading]
         shifts = [names.index(t) for t in model if t in names and t not in terms]
-        r2_rest = _wls(Xs[:, rest], yk, wk)[1]
+        # R² of the law's other terms, alone and with each shift (computed once)
+        r2_without = {m: _wls(Xs[:, [*rest, *([] if m is None else [m])]], yk, wk)[1]
+                      for m in (None, *shifts)}  # fmt: skip
         for n in names:
             if n in ("1", leading) or n in terms:
                 continue
@@ -234,10 +236,10 @@ def explain(
             # correlation): e.g. p sign(v) + sign(v) against p + 1 on logs whose
             # pressure at rest is that of lifting
             r2_alt = max(
-                _wls(Xs[:, [*rest, j, *extra]], yk, wk)[1] - _wls(Xs[:, [*rest, *extra]], yk, wk)[1]
-                for extra in ([], *([m] for m in shifts if m != j))
+                _wls(Xs[:, [*rest, j, *([] if m is None else [m])]], yk, wk)[1] - r2_without[m]
+                for m in (None, *shifts) if m != j
             )  # fmt: skip
-            if r2_alt >= ALIAS_CORR**2 * (r2 - r2_rest):
+            if r2_alt >= ALIAS_CORR**2 * (r2 - r2_without[None]):
                 alternatives.append(n)
     return Law(
         signal=name, unit=unit, coefs=coefs, r2=r2,
