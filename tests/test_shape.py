@@ -138,6 +138,39 @@ def test_a_hidden_force_is_recovered_when_the_parameters_are_right():
     assert list(table.index) == ["force", "flow"] and "p sign(v)" in shape._repr_html_()
 
 
+def test_damped_passes_move_a_log_whose_gauss_newton_steps_are_all_rejected(monkeypatch):
+    """Where the linearisation is poor (measured: a large duty saturation, one log
+    stalled at chi2/N 180), every Gauss--Newton step, halved four times, makes the fit
+    worse. Here that is forced: the undamped smoother's step is turned back and made 20
+    times longer, so each of its halvings is rejected. The damped (Levenberg--Marquardt)
+    passes must still reach the noise and the hidden force; without them the log stays
+    where the baseline left it."""
+    from jaxlift.calibrate import shape as shape_mod
+
+    smooth = shape_mod._smooth
+
+    def reversed_step(*args):
+        ll, w, sd, de0, chi2 = smooth(*args)
+        if args[8].shape[0] == args[6].shape[0] and args[6].shape[0] < args[6].shape[1]:
+            # undamped (R covers only the measured rows): reverse the step, x20
+            wbar = args[3]
+            return ll, wbar - 20.0 * (w - wbar), sd, -20.0 * de0, chi2
+        return ll, w, sd, de0, chi2
+
+    monkeypatch.setattr(shape_mod, "_smooth", reversed_step)
+    law = SealFriction()
+    made = [_log(law, 400.0, 1, 0.3, "steps", "seal_damped")]
+    truth = jl.FitResult.__new__(jl.FitResult)
+    truth.model, truth.effects, truth.x0_offsets = jl.Model.build(), [], {}
+    (lg,) = jl.estimate_missing_shape(truth, [made[0][0]]).logs
+    assert lg.chi2n_before > 2.0 and lg.chi2n_after < 1.1, (lg.chi2n_before, lg.chi2n_after)
+    hidden = -law.mu * lg.p * np.tanh(lg.v / 1e-3)
+    assert np.corrcoef(hidden, lg.force)[0, 1] >= 0.9
+    monkeypatch.setattr(shape_mod, "DAMPED_TRIES", 0)
+    (lg,) = jl.estimate_missing_shape(truth, [made[0][0]], iterations=3).logs
+    assert lg.chi2n_after == pytest.approx(lg.chi2n_before)
+
+
 CASES = {
     # law, signal that carries it, the library term that leads (None: not in library)
     "seal_friction": (SealFriction(), "force", "p sign(v)"),
