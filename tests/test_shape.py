@@ -171,6 +171,33 @@ def test_damped_passes_move_a_log_whose_gauss_newton_steps_are_all_rejected(monk
     assert lg.chi2n_after == pytest.approx(lg.chi2n_before)
 
 
+def test_without_a_pressure_sensor_a_signal_not_needed_is_held_at_zero():
+    """A log without pressure: a free flow and a free force could trade along what the
+    log cannot see (a straight-line flow drifts the pressure, the force makes up for
+    it; measured before the fix: the pressure estimate at -21..29 MPa against a true
+    0..19, the force uncorrelated with the law, 0.05). The flow is not needed, so it is
+    held at zero: the pressure stays the model's, and the force is the law's (seen only
+    through the dynamics here, so less sharply than with a sensor: >= 0.7, not 0.9)."""
+    law = SealFriction()
+    ts, pwm = ramped_sequence(SECTIONS["thesis-like"], ramp_s=0.5)
+    inputs = jl.Inputs.from_arrays(ts, pwm, np.full_like(ts, 1400.0), 0.3)
+    sol = jl.simulate(jl.Plant(), (law,), inputs, rtol=1e-8, atol=(1e-9, 1e-9, 1e-2))
+    log = jl.to_log(sol, inputs, jl.MeasurementModel(), jax.random.key(2),
+                    with_pressure=False, name="no_pressure")  # fmt: skip
+    truth = jl.FitResult.__new__(jl.FitResult)
+    truth.model, truth.effects, truth.x0_offsets = jl.Model.build(), [], {}
+    shape = jl.estimate_missing_shape(truth, [log])
+    (lg,) = shape.logs
+    assert not shape.with_pressure
+    assert shape.needed == {"force": True, "flow": False}, (shape.evidence, shape.shares)
+    assert np.max(np.abs(lg.flow)) < 1e-7  # held (the pump delivers ~1e-4 m^3/s)
+    p_true = np.asarray(sol.pressure)
+    assert np.sqrt(np.mean((lg.p - p_true) ** 2)) < 1e6, (lg.p.min(), lg.p.max())
+    hidden = -law.mu * p_true * np.tanh(lg.v / 1e-3)
+    assert np.corrcoef(hidden, lg.force)[0, 1] >= 0.7
+    assert lg.chi2n_before > 2.0 and lg.chi2n_after < 1.3
+
+
 CASES = {
     # law, signal that carries it, the library term that leads (None: not in library)
     "seal_friction": (SealFriction(), "force", "p sign(v)"),

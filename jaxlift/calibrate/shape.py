@@ -72,6 +72,12 @@ LOG10_Q_GRID = np.arange(-3.0, 9.01, 1.0)
 #: sample], and how many tenfold raises are tried before a log's pass is given up.
 LAM_START = 1e-3
 DAMPED_TRIES = 5
+#: On a log without pressure, a signal that is not needed (:attr:`MissingShape.needed`)
+#: is held at zero in the passes: a roughness far below the grid's and this start sd
+#: [scales] (a signal that is exactly rigid makes the smoother's covariance singular).
+Q_OFF = 10.0 ** (LOG10_Q_GRID[0] - 6.0)
+OFF_SD = 1e-2
+PRESSURE_ROW = 2  # the measured signals: height 0, speed 1, pressure 2
 
 
 class MissingTerms(AbstractStatelessEffect):
@@ -443,6 +449,8 @@ def estimate_missing_shape(
             the outside-the-eight study: on a duty saturation of 0.37 one log stalled
             at chi2/N 180 with every halved step rejected -- the linearisation about
             the baseline is poor that far from it; damped passes took it to 3.6.)
+            On a log without pressure, a signal that is not needed is held at zero
+            throughout (see ``_off``).
         progress: optional callable taking a line of text.
 
     Returns:
@@ -465,6 +473,7 @@ def estimate_missing_shape(
     sds = [np.full((lp.log.n, 2), np.inf) for lp in lps]
     log10_q, evidence = _choose_q(lps, pts, (4.0, 4.0))
     shares = _shares(lps, pts, log10_q)
+    off = _off(evidence, shares)
     say(
         f"missing-term smoothness: log10 q = {log10_q[0]:.0f} (force), {log10_q[1]:.0f} "
         f"(flow); evidence {evidence['force']:.0f}, {evidence['flow']:.0f}"
@@ -477,7 +486,7 @@ def estimate_missing_shape(
         largest = 0.0
         damped = False
         for k, (lp, pt) in enumerate(zip(lps, pts)):
-            _, wn, sd, de0, _ = _smooth(*_args(lp, pt, q))
+            _, wn, sd, de0, _ = _smooth(*_args(lp, pt, q, off=off))
             wn, sds[k], de0 = np.asarray(wn), np.asarray(sd), float(de0)
             # the Gauss--Newton step, halved up to four times; then, if none of those
             # improves the log's fit, damped steps (Levenberg--Marquardt smoothing:
@@ -489,7 +498,7 @@ def estimate_missing_shape(
             tries += [(1.0, lam[k] * 10.0**j) for j in range(DAMPED_TRIES)]
             for step, lam_k in tries:
                 if lam_k is not None:
-                    _, wn, _, de0, _ = _smooth(*_args(lp, pt, q, lam_k))
+                    _, wn, _, de0, _ = _smooth(*_args(lp, pt, q, lam_k, off))
                     wn, de0 = np.asarray(wn), float(de0)
                 cand = pt.w + step * (wn - pt.w)
                 dx0 = pt.dx0 + step * de0
@@ -513,10 +522,20 @@ def estimate_missing_shape(
             break
         if it == 0:  # choose the smoothness again, about the first estimate
             log10_q, evidence = _choose_q(lps, pts, log10_q)
+            off, was = _off(evidence, shares), off
+            for j in np.flatnonzero(np.asarray(off) & ~np.asarray(was)):
+                for k, (lp, pt) in enumerate(zip(lps, pts)):  # switched off: back to 0
+                    if PRESSURE_ROW in lp.rows:
+                        continue
+                    w = pt.w.copy()
+                    w[:, j] = 0.0
+                    ys = _simulate(plant, effects, lp, w, pt.dx0)
+                    if ys is not None:
+                        pts[k] = _point(plant, effects, lp, w, pt.dx0, ys)
     # the standard deviations at the final point
     q = 10.0 ** np.asarray(log10_q)
     for k, (lp, pt) in enumerate(zip(lps, pts)):
-        sds[k] = np.asarray(_smooth(*_args(lp, pt, q))[2])
+        sds[k] = np.asarray(_smooth(*_args(lp, pt, q, off=off))[2])
     out = []
     for lp, pt, sd, c0 in zip(lps, pts, sds, chi2_before):
         lg, w, ys = lp.log, pt.w, pt.ys
@@ -540,11 +559,34 @@ def estimate_missing_shape(
     )
 
 
-def _args(lp: _LogProblem, pt: _Point, q, lam: float | None = None):
+def _off(evidence: dict, shares: dict) -> tuple[bool, bool]:
+    """Which signals (force, flow) are held at zero on logs without pressure: those
+    not needed. Free, such a signal trades with the other along what such a log cannot
+    see: a straight-line flow drifts the pressure, and the force makes up for it
+    (measured: the pressure drifted to 2 GPa, with a -2 MN force, on a stick-slip log
+    where the flow was not needed). A logged pressure pins that direction, and there
+    the small corrections of a signal not needed are left free (holding the force of a
+    duty saturation at zero left a log at chi2/N 2.0 instead of < 1.2)."""
+    ev, sh = MissingShape.EVIDENCE_THRESHOLD, MissingShape.SHARE_THRESHOLD
+    return tuple(not (evidence[k] >= ev and shares[k] >= sh) for k in ("force", "flow"))
+
+
+def _args(
+    lp: _LogProblem,
+    pt: _Point,
+    q,
+    lam: float | None = None,
+    off: tuple[bool, bool] = (False, False),
+):
     """The smoother's arguments about the point ``pt``. With ``lam``, every state and
     both signals are also measured at their current values with precision ``lam`` (in
     the scaled units): a Levenberg--Marquardt damped step (Särkkä and Svensson, 2020,
-    "Levenberg--Marquardt and line-search extended Kalman smoothers")."""
+    "Levenberg--Marquardt and line-search extended Kalman smoothers"). A signal that is
+    ``off`` is held at its current values (zero; see :func:`_off`), on a log without
+    pressure."""
+    if PRESSURE_ROW in lp.rows:
+        off = (False, False)
+    q = np.where(off, Q_OFF, np.asarray(q, float))
     w, ys, Phi, Gam, resid = pt.w, pt.ys, pt.Phi, pt.Gam, pt.resid
     S = ys.shape[1]
     D = jnp.asarray(lp.D)
@@ -567,7 +609,8 @@ def _args(lp: _LogProblem, pt: _Point, q, lam: float | None = None):
     e0[0] = 2e-2 / lp.sig[0]
     e0[1] = 1e-4 / lp.sig[1]
     e0[2] = 1e6 / lp.sig[2]
-    P0 = np.diag(np.concatenate([e0**2, np.full(4, START_SD**2)]))
+    sd0 = np.repeat(np.where(off, OFF_SD, START_SD), 2)  # level and rate of F, Q
+    P0 = np.diag(np.concatenate([e0**2, sd0**2]))
     m0 = np.zeros(S + 4)
     m0[S] = w[0, 0] / FORCE_SCALE_N  # the residual is relative to the current signals
     m0[S + 2] = w[0, 1] / FLOW_SCALE_M3S
@@ -609,7 +652,7 @@ def _shares(lps, pts, log10_q) -> dict[str, float]:
     # a signal switched off gets a roughness far below the grid's (a straight line in
     # effect), not 0: with both signals exactly rigid the smoother's covariance is
     # singular and its chi2 NaN (measured: a hidden drag, the flow's q chosen 0)
-    off = 10.0 ** (LOG10_Q_GRID[0] - 6.0)
+    off = Q_OFF
     q = np.maximum(10.0 ** np.asarray(log10_q, float), off)
     configs = {
         "both": q,
