@@ -185,11 +185,23 @@ def report(out: pathlib.Path, to: pathlib.Path) -> str:
         )
     lines += ["", "![PIT histograms](pit.png)", ""]
     if n_fail:
-        lines.append("Left out: " + ", ".join(
-            f"{r['case_id']} ({'not converged' if r.get('targets') else 'failed'})"
-            for r in results if r not in usable))  # fmt: skip
+        lines += ["Left out:", ""]
+        lines += [f"- {r['case_id']} ({'+'.join(r['hidden_effects']) or 'null'}): {_why_out(r)}"
+                  for r in results if r not in usable]  # fmt: skip
     (to / "coverage.md").write_text("\n".join(lines) + "\n")
     return "\n".join(lines)
+
+
+def _why_out(result: dict) -> str:
+    """Why a case is left out of the rates: the chain did not converge, or the step
+    that failed and the last line it printed."""
+    if result.get("targets"):
+        return "the chain did not reach 50 tau"
+    for name, step in result["steps"].items():
+        last = [ln for ln in step["tail"].splitlines() if "error" in ln.lower()]
+        if step["rc"] != 0 and (name == "posterior" or last):
+            return f"`{name}` failed: " + (last[-1].strip() if last else f"exit code {step['rc']}")
+    return "no posterior"
 
 
 def main(argv=None) -> int:
