@@ -378,6 +378,10 @@ class _LogProblem:
     sig: np.ndarray  # (3,) noise sd per signal
     D: np.ndarray  # (S,) state scales
 
+    @property
+    def has_pressure(self) -> bool:
+        return PRESSURE_ROW in self.rows
+
 
 def _log_problem(log: Log, result: FitResult, effects) -> _LogProblem:
     (exp,) = make_experiments([log])  # inputs, measurements and noise levels
@@ -523,12 +527,11 @@ def estimate_missing_shape(
         if it == 0:  # choose the smoothness again, about the first estimate
             log10_q, evidence = _choose_q(lps, pts, log10_q)
             off, was = _off(evidence, shares), off
-            for j in np.flatnonzero(np.asarray(off) & ~np.asarray(was)):
-                for k, (lp, pt) in enumerate(zip(lps, pts)):  # switched off: back to 0
-                    if PRESSURE_ROW in lp.rows:
-                        continue
+            newly = np.flatnonzero(np.asarray(off) & ~np.asarray(was))
+            for k, (lp, pt) in enumerate(zip(lps, pts)):  # switched off: back to 0
+                if newly.size and not lp.has_pressure:
                     w = pt.w.copy()
-                    w[:, j] = 0.0
+                    w[:, newly] = 0.0
                     ys = _simulate(plant, effects, lp, w, pt.dx0)
                     if ys is not None:
                         pts[k] = _point(plant, effects, lp, w, pt.dx0, ys)
@@ -584,7 +587,7 @@ def _args(
     "Levenberg--Marquardt and line-search extended Kalman smoothers"). A signal that is
     ``off`` is held at its current values (zero; see :func:`_off`), on a log without
     pressure."""
-    if PRESSURE_ROW in lp.rows:
+    if lp.has_pressure:
         off = (False, False)
     q = np.where(off, Q_OFF, np.asarray(q, float))
     w, ys, Phi, Gam, resid = pt.w, pt.ys, pt.Phi, pt.Gam, pt.resid
