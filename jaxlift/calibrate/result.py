@@ -131,6 +131,17 @@ def inside_bounds(info: ParamInfo, v: float) -> float:
     return v
 
 
+#: relative distance (of the bounds' span) below an upper bound at which a parameter is
+#: held there and reported as at the bound: the round trip through a transform must not
+#: carry it past the bound (a parameter file with it would then be refused)
+UPPER_MARGIN = 1e-9
+
+
+def at_upper_bound(info: ParamInfo) -> float:
+    """Where a parameter pushed past its (finite) upper bound is held."""
+    return info.upper - UPPER_MARGIN * (info.upper - info.lower)
+
+
 def finish(plant0, effs, experiments, free, values, initial, stages, x0_mm, rJ=None) -> FitResult:
     """Standard errors, correlations and the rest of the :class:`FitResult`, from the
     residuals and Jacobian ``rJ`` at the optimum (computed here when not given)."""
@@ -186,6 +197,13 @@ def finish(plant0, effs, experiments, free, values, initial, stages, x0_mm, rJ=N
             undetermined[name] = (
                 f"driven to its lower bound {info.lower:g} {info.unit}; its standard "
                 "error there means nothing"
+            )
+        elif math.isfinite(info.upper) and val >= info.upper - 2 * UPPER_MARGIN * (
+            info.upper - info.lower
+        ):
+            undetermined[name] = (
+                f"held at its upper bound {info.upper:g} {info.unit} (the data push it "
+                "further); its standard error there means nothing"
             )
         elif S.size and np.any((S <= cutoff) & (np.abs(Vt[:, k]) > 0.3)):
             undetermined[name] = "in a direction the data do not constrain (singular Jacobian)"
