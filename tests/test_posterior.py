@@ -1,6 +1,7 @@
 """Posterior (emcee): log-probability, truth inside the 90 % intervals, resume, seeds,
 air content, command line."""
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -165,6 +166,16 @@ def test_resume_equals_uninterrupted_and_seeds(problem, log_prob, tmp_path):
     assert np.array_equal(ca, cc) and np.array_equal(la, lc)
     run(tmp_path / "d.h5", 30, seed=4)  # another seed: another chain
     assert not np.array_equal(ca, chain(tmp_path / "d.h5")[0])
+
+
+def test_a_degenerate_starting_covariance_is_named(problem, log_prob, tmp_path):
+    """Walkers drawn from a collapsed Laplace covariance (measured: 1e-218, from a
+    Jacobian whose sensitivities had exploded) are refused with a message that says so,
+    not emcee's bare "large condition number"."""
+    broken = dataclasses.replace(problem, cov_theta=1e-218 * np.eye(len(problem.names)))
+    with pytest.raises(ValueError, match=r"Laplace covariance .* is degenerate.*beta"):
+        sample_posterior(broken, tmp_path / "x.h5", n_walkers=WALKERS, max_steps=2,
+                         log_prob=log_prob)  # fmt: skip
 
 
 def test_move_choice_stored_and_kept_on_resume(problem, tmp_path):

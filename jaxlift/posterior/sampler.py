@@ -64,6 +64,7 @@ def _initial_coords(problem: PosteriorProblem, n_walkers: int, seed: int, f) -> 
         lp = EmceeLogProb(f, max(n_walkers // 2, 1))(coords)
         bad = ~np.isfinite(lp)
         if not bad.any():
+            _check_independent(problem, coords)
             return coords
         coords[bad] = rng.multivariate_normal(
             problem.theta_opt, 0.25 * cov, size=int(bad.sum()), method="eigh"
@@ -71,6 +72,23 @@ def _initial_coords(problem: PosteriorProblem, n_walkers: int, seed: int, f) -> 
     raise ValueError(
         "could not start the walkers: the log-probability is -inf around the least-squares "
         "optimum (solver failures or prior support); check the calibration"
+    )
+
+
+def _check_independent(problem: PosteriorProblem, coords: np.ndarray) -> None:
+    """emcee's own test of the starting ensemble (its stretch and snooker moves never
+    leave the walkers' affine hull), with a message that says where the covariance
+    came from and how it is broken."""
+    if emcee.ensemble.walkers_independent(coords):
+        return
+    sd = np.sqrt(np.maximum(np.diag(problem.cov_theta), 0.0))
+    raise ValueError(
+        "could not start the walkers: the Laplace covariance at the least-squares optimum "
+        "is degenerate (standard deviations in the unconstrained coordinates: "
+        + ", ".join(f"{n} {v:.3g}" for n, v in zip(problem.names, sd))
+        + "), so the walkers are not linearly independent. The Jacobian there is not "
+        "trustworthy (a simulation whose sensitivities exploded, or a parameter at a "
+        "bound); check the calibration"
     )
 
 
