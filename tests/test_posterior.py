@@ -80,6 +80,19 @@ def test_problem_setup(problem):
     assert np.all(np.linalg.eigvalsh(problem.cov_theta) > 0)
 
 
+def test_a_model_that_does_not_reach_the_noise_says_so(logs, problem):
+    """The intervals are conditional on the fitted model: the right model at its optimum
+    is at the noise floor (no warning); with the damping held wrong (20 000 N s/m against
+    420) what is left is far above it, and set-up warns and records it."""
+    assert not problem.ls_info["misfit"]["above_noise"]
+    assert abs(problem.ls_info["misfit"]["z"]) < 3.0
+    said = []
+    wrong = prepare_posterior(logs, params={**TRUTH, "d": 2e4}, sample="beta",
+                              progress=said.append)  # fmt: skip
+    assert wrong.ls_info["misfit"]["above_noise"] and wrong.ls_info["misfit"]["z"] > 10
+    assert any("leaves error above the sensor noise" in line for line in said), said
+
+
 def test_log_prob_finite_and_batch_equals_single(problem, log_prob):
     th = _batch(problem)
     th[0] = problem.theta_opt

@@ -305,6 +305,16 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
         "(combined with the priors, so that directions the data do not determine start "
         "at the prior's width)."
     )
+    misfit = problem.ls_info.get("misfit")  # chains stored before it was recorded: none
+    if misfit and misfit["above_noise"]:
+        rep.text(
+            f"**Warning: the model does not reach the sensor noise.** The least-squares fit "
+            f"leaves chi2/N {misfit['chi2n']:.3g}, {misfit['z']:.1f} standard errors above "
+            "the noise floor of 1. The intervals below are conditional on this model and "
+            "this optimum: if the model misses an effect, or the fit ended in another basin "
+            "of a rough least-squares surface (stick-slip), they are around the wrong "
+            "values. `jaxlift diagnose` says which."
+        )
     sig = ("height", "speed", "pressure")
     checks = {(c["log"], c["signal"]): c for c in problem.ls_info.get("innovation_check", [])}
     rep.table(
