@@ -361,6 +361,6 @@ def test_stability_limit_sees_a_complex_pair_in_badly_scaled_states(monkeypatch)
     )
     d = np.asarray(jax.jacfwd(_oscillator)(jnp.asarray(0.0)))
     np.testing.assert_allclose(d, exact, rtol=0, atol=1e-5)
-    monkeypatch.setattr(stepping, "_ritz_radius", lambda w, jw, jjw: jnp.zeros(()))
+    monkeypatch.setattr(stepping, "_ritz_radius", lambda w, jw, rho, jjw: jnp.zeros(()))
     d_power = np.asarray(jax.jacfwd(_oscillator)(jnp.asarray(0.0)))
     assert not np.all(np.abs(d_power - exact) < 1e-3), d_power
