@@ -97,6 +97,9 @@ def main() -> int:
     start = {k: v for k, v in base.items() if k in known}
     start.update(cf_con=known["cf_con"].nominal, d=known["d"].nominal)
     logs = [jl.read_log(case / "fit_1.csv"), jl.read_log(case / "fit_2.csv")]
+    for lg in logs:
+        if lg.speed_mps is None:
+            ap.error(f"{lg.name}: the slip features need a speed column (speed_mps)")
     inputs = [jl.Inputs.from_log(lg) for lg in logs]
     secs = [sections(lg) for lg in logs]
     measured = [
