@@ -30,6 +30,7 @@ import argparse
 import itertools
 import json
 import pathlib
+import sys
 import time
 
 import jax
@@ -42,25 +43,15 @@ import scipy.optimize as so  # noqa: E402
 import jaxlift as jl  # noqa: E402
 from jaxlift.calibrate.fit import offsets_and_chi2n  # noqa: E402
 
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from stick_slip_moments import sections as section_ranges  # noqa: E402
+
 SHOWN = ("beta", "cf_con", "cf_in", "cf_out", "d", "dFs", "v_s")
 #: relative errors the features are weighed by: frequency, peak speed, duration
 REL = np.array([0.03, 0.03, 0.10])
 MIN_SECTION_S = 5.0
 DFS_GRID = (100.0, 200.0, 400.0, 700.0, 1000.0, 1500.0, 2200.0, 3000.0)  # N
 VS_GRID = (0.002, 0.003, 0.0045, 0.007, 0.01, 0.015, 0.02)  # m/s
-
-
-def sections(log) -> list[np.ndarray]:
-    """Sample indices of each section of constant, positive duty of at least 5 s."""
-    n_min = int(MIN_SECTION_S / log.sample_period)
-    out = []
-    for duty in np.unique(log.pwm[log.pwm > 0]):
-        idx = np.nonzero(log.pwm == duty)[0]
-        # split into contiguous runs
-        for run in np.split(idx, np.nonzero(np.diff(idx) > 1)[0] + 1):
-            if run.size >= n_min:
-                out.append(run)
-    return out
 
 
 def features(speed: np.ndarray, idx: np.ndarray, dt: float, threshold: float) -> np.ndarray:
@@ -101,7 +92,11 @@ def main() -> int:
         if lg.speed_mps is None:
             ap.error(f"{lg.name}: the slip features need a speed column (speed_mps)")
     inputs = [jl.Inputs.from_log(lg) for lg in logs]
-    secs = [sections(lg) for lg in logs]
+    # each section of constant, positive duty of at least MIN_SECTION_S, whole
+    secs = [
+        [np.arange(a, b) for a, b in section_ranges(lg, min_s=MIN_SECTION_S, skip_s=0.0)]
+        for lg in logs
+    ]
     measured = [
         [features(lg.speed_mps, i, lg.sample_period, args.threshold) for i in ss]
         for lg, ss in zip(logs, secs)
