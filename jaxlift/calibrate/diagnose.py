@@ -16,7 +16,9 @@ For every candidate effect of docs/model.md that is not yet in the model:
    independent ones. The predicted chi2 drop is ``(g'r)^2 / |g_perp|^2``.
 2. **Confirm** the best-screened candidates by refitting the model with the effect
    (warm start at the current optimum; the effect's parameters from a small grid of
-   physically sized values), and compare the information criterion
+   physically sized values, and from the starts the effect reads from the logs, where
+   it reads any: :meth:`~jaxlift.AbstractEffect.starts_from_logs`, stick-slip's
+   search on its slips' statistics), and compare the information criterion
    ``BIC = chi2 / infl + k ln(n / infl)`` and the error on held-out logs.
 3. **Verdict**: the confirmed effect with the largest BIC drop, if that drop is larger
    than ``bic_threshold`` (default 10: "very strong" on Kass & Raftery's scale) and,
@@ -47,8 +49,14 @@ import numpy as np
 import pandas as pd
 
 from ..analysis.regimes import stage_of
+from ..model.build import all_param_infos, make_effects, with_params
 from ..model.effects import EFFECTS
+from ..model.inputs import Inputs
 from ..model.log import Log
+from ..model.params import ParameterError
+from ..model.plant import Plant
+from ..model.simulate import simulate
+from ..model.solution import Solution
 from .experiment import make_experiments
 from .fit import fit, heldout_residuals, offsets_and_chi2n
 from .parallel import thread_map
@@ -317,6 +325,9 @@ def diagnose(
             for s in to_confirm
             if len(guesses[s.effect]) > k
         ]
+        # and the starts an effect reads from the logs (AbstractEffect.starts_from_logs;
+        # None here: found in the refit's thread), after every candidate's first start
+        jobs[len(to_confirm) : len(to_confirm)] = [(s, None) for s in to_confirm]
 
         def refit(job) -> tuple[FitResult | None, float | None, str | None]:
             if job is None:  # the current model's held-out error
@@ -324,9 +335,16 @@ def diagnose(
                     return None, held_before[0], None
                 return None, _heldout_chi2(base.params, base.effects, validate_logs), None
             s, guess = job
-            init = {**base.params, **guess}
-            where = ", ".join(f"{k} = {v:g}" for k, v in guess.items())
+            where = "" if guess is None else ", ".join(f"{k} = {v:g}" for k, v in guess.items())
             try:
+                if guess is None:
+                    run = log_simulator(base.params, [*base.effects, s.effect], logs)
+                    found = EFFECTS[s.effect].starts_from_logs(logs, base.params, run)
+                    if not found:
+                        return None, None, None  # the effect reads none from these logs
+                    guess = found[0]
+                    where = "the logs: " + ", ".join(f"{k} = {v:.4g}" for k, v in guess.items())
+                init = {**base.params, **guess}
                 res = fit(logs, effects=[*base.effects, s.effect], free=f"{free},effects",
                           init=init, staged=False, n_starts=1,
                           seed=seed, workers=1)  # fmt: skip
@@ -348,6 +366,8 @@ def diagnose(
         for (s, _), (res, held, err) in zip(jobs, results):
             if err is not None:
                 failures.setdefault(s.effect, []).append(err)
+            elif res is None:  # no start read from the logs
+                continue
             elif s.effect not in bests or res.chi2 < bests[s.effect][0].chi2:
                 bests[s.effect] = (res, held)
         passing = []
@@ -613,6 +633,29 @@ def refit_starts(effect: str, screen_estimate: float) -> list[dict[str, float]]:
             if not any(abs(math.log(v / st[par])) < math.log(2.0) for st in starts):
                 starts.append({par: v})
     return starts
+
+
+def log_simulator(
+    params: Mapping[str, float], effects: Sequence[str], logs: Sequence[Log]
+) -> Callable[[Mapping[str, float]], list[Solution] | None]:
+    """``run(values)``: the model with ``effects``, at ``params`` updated by ``values``
+    (physical units; parameters not given at their nominal values), simulated on each
+    of ``logs`` from its first sample; None if a value is out of its bounds or a
+    simulation fails. The simulator :meth:`~jaxlift.AbstractEffect.starts_from_logs` gets."""
+    effs = make_effects(effects)
+    infos = all_param_infos(effs)
+    inputs = [Inputs.from_log(lg) for lg in logs]
+
+    def run(values: Mapping[str, float]) -> list[Solution] | None:
+        own = {k: v for k, v in {**params, **values}.items() if k in infos}
+        try:
+            plant, model = with_params(Plant(), effs, own)
+        except ParameterError:
+            return None
+        sols = [simulate(plant, model, inp) for inp in inputs]
+        return sols if all(bool(sol.ok) for sol in sols) else None
+
+    return run
 
 
 def _log_between(lo: float, hi: float, q: float) -> float:

@@ -14,6 +14,9 @@ every active effect for its contribution at each point of the chain:
 7. ``acceleration``     -- replaces the rigid fork-and-load law (at most one effect);
 8. ``state_derivative`` -- time derivative of the effect's own states.
 
+Besides the physics, an effect may say where a refit with it should start
+(``starts_from_logs``, read from the logs; none by default).
+
 Design note: the hooks have neutral defaults here (zero contribution / pass-through)
 and a concrete effect overrides only those it uses. This is a deliberate departure
 from equinox's strict "abstract or final" rule: requiring all eight hooks in every
@@ -24,6 +27,7 @@ effect would make adding a hook touch every effect. The abstract parts an effect
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable, Mapping, Sequence
 from typing import ClassVar, NamedTuple
 
 import equinox as eqx
@@ -31,8 +35,10 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ..constants import G
+from ..log import Log
 from ..params import ParamInfo, param_infos
 from ..plant import Plant
+from ..solution import Solution
 
 Scalar = Float[Array, ""]
 Vector = Float[Array, " n"]
@@ -102,6 +108,32 @@ class AbstractEffect(eqx.Module):
 
     def state_derivative(self, plant: Plant, z: Vector, sig: Signals) -> Vector:
         return jnp.zeros((0,))
+
+    # ------------------------------------------------------------- calibration
+    @classmethod
+    def starts_from_logs(
+        cls,
+        logs: Sequence[Log],
+        params: Mapping[str, float],
+        simulate: Callable[[Mapping[str, float]], Sequence[Solution] | None],
+    ) -> list[dict[str, float]]:
+        """Starting values of a confirmation refit with this effect, read from the logs.
+
+        Args:
+            logs: the fitted logs.
+            params: the fitted model without this effect (physical units).
+            simulate: ``simulate(values)`` runs the model with this effect, its
+                parameters ``params`` updated by ``values``, on each log: the
+                solutions, or None if one fails.
+
+        Returns:
+            Starts (any parameters, this effect's or the baseline's). The diagnosis
+            refits from these besides the grid over the effect's typical range
+            (:func:`jaxlift.calibrate.diagnose.refit_starts`). For effects whose
+            least-squares surface is too rough for a grid of starts (stick-slip);
+            none by default.
+        """
+        return []
 
 
 def rigid_acceleration(plant: Plant, sig: Signals) -> Scalar:

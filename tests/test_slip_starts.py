@@ -1,0 +1,122 @@
+"""Stick-slip's refit start read from the logs (``StickSlip.starts_from_logs``): the
+slip statistics it matches, the sections it reads them from, when it reads nothing,
+and -- from a baseline fitted from nominal values, as the diagnosis has it -- a start
+from which the ordinary fit reaches the truth where the grid starts stall."""
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+import jaxlift as jl
+from jaxlift.calibrate.diagnose import log_simulator
+from jaxlift.model.effects.stick_slip import constant_duty_sections, slip_features
+from jaxlift.model.sequences import ramped_sequence
+
+DT = 0.01
+
+
+def _pulses(n: int, period: int, width: int, peak: float, size: int) -> np.ndarray:
+    """``n`` rectangular slips of ``width`` samples at ``peak`` [m/s], one every
+    ``period`` samples, on a fork at rest."""
+    v = np.zeros(size)
+    for k in range(n):
+        v[10 + k * period : 10 + k * period + width] = peak
+    return v
+
+
+def test_slip_features_count_time_and_measure_slips():
+    # 6 slips of 15 samples at 40 mm/s in 600 samples (6 s): 1 /s, 0.04 m/s; the
+    # 3-sample smoothing keeps the top and adds a sample at 13.3 mm/s (> 12) at each
+    # end: 0.17 s
+    f = slip_features(_pulses(6, 90, 15, 0.04, 600), DT)
+    np.testing.assert_allclose(f, [1.0, 0.04, 0.17], rtol=1e-12)
+    # a steady lift above the threshold is no slip; two slips are too few to measure
+    assert slip_features(np.full(600, 0.05), DT).tolist() == [0.0, 0.0, 0.0]
+    two = slip_features(_pulses(2, 200, 15, 0.04, 600), DT)
+    assert two[0] == pytest.approx(2 / 6.0) and two[1:].tolist() == [0.0, 0.0]
+    # below the threshold (12 mm/s): no slip
+    assert slip_features(_pulses(6, 90, 15, 0.01, 600), DT)[0] == 0.0
+
+
+def test_constant_duty_sections_are_positive_and_long_enough():
+    pwm = np.concatenate([np.zeros(100), np.full(600, 0.2), np.full(300, 0.3),
+                          np.zeros(700), np.full(501, 0.1)])  # fmt: skip
+    assert constant_duty_sections(pwm, DT) == [(100, 700), (1700, 2201)]
+    assert constant_duty_sections(pwm, DT, min_s=2.0) == [(100, 700), (700, 1000), (1700, 2201)]
+
+
+TRUTH = dict(beta=0.75e9, cf_con=12.0, d=300.0)
+# four sections of low, constant duty, 7 s each but the last
+SECTIONS = [(0.0, 1.0), (0.12, 7.0), (0.15, 7.0), (0.0, 1.5), (0.18, 7.0), (0.25, 6.0), (0.0, 1.0)]
+
+
+def _logs(effect_values, sections=SECTIONS):
+    names = ["stick_slip"] if effect_values else []
+    plant, effs = jl.with_params(jl.Plant(), jl.make_effects(names), {**TRUTH, **effect_values})
+    ts, pwm = ramped_sequence(sections)
+    logs = []
+    for k, (load, x0) in enumerate([(800.0, 0.0), (1500.0, 0.5)]):  # one from the end stop
+        inputs = jl.Inputs.from_arrays(ts, pwm, np.full_like(ts, load), x0)
+        sol = jl.simulate(plant, effs, inputs, rtol=1e-8, atol=(1e-9, 1e-9, 1e-2))
+        assert bool(sol.ok)
+        key = jax.random.key(k)
+        logs.append(jl.to_log(sol, inputs, jl.MeasurementModel(), key, name=f"lift{k}"))
+    return logs
+
+
+def _starts(effect, logs, params):
+    run = log_simulator(params, [effect], logs)
+    return jl.EFFECTS[effect].starts_from_logs(logs, params, run)
+
+
+def test_a_steady_lift_near_the_threshold_reads_as_slipping():
+    """The known limitation (``slip_features``): without stick-slip, a lift at ~11
+    mm/s, its noisy speed crossing the 12 mm/s threshold again and again, counts as
+    slipping (more than MIN_SLIPS in MIN_SECTION_S), so the search runs on it.
+    (Measured besides: at ~17 mm/s from rest, the 1500 kg log's oscillations after
+    the start crossed it 4 times in 6 s, just enough; at 24 mm/s and above, never.)"""
+    for log in _logs({}, [(0.0, 1.0), (0.12, 7.0), (0.0, 1.0)]):
+        ((a, b),) = constant_duty_sections(log.pwm, log.sample_period)
+        assert 0.008 < np.mean(log.speed_mps[a:b]) < 0.012
+        assert slip_features(log.speed_mps[a:b], log.sample_period)[0] > 3 / 5.0
+
+
+def test_no_start_without_slips_or_without_a_speed_column():
+    # no stick-slip: lifts at 32-60 mm/s, no slips to match (a lift from rest at
+    # 17 mm/s does cross 12 mm/s in its first oscillations: see the test above)
+    logs = _logs({}, [(0.0, 1.0), (0.22, 7.0), (0.35, 7.0), (0.0, 1.5), (0.25, 6.0)])
+    params = jl.model_params(*jl.with_params(jl.Plant(), (), TRUTH))
+    assert _starts("stick_slip", logs, params) == []
+    slipping = _logs({"dFs": 150.0, "v_s": 0.011})
+    no_speed = [dataclasses.replace(lg, speed_mps=None) for lg in slipping]
+    assert _starts("stick_slip", no_speed, params) == []
+    # every other effect reads nothing from the logs
+    for name in jl.EFFECTS:
+        if name != "stick_slip":
+            assert _starts(name, slipping, params) == []
+
+
+@pytest.mark.slow
+def test_start_from_the_slips_leads_the_fit_to_the_truth():
+    """150 N of breakaway friction at a Stribeck speed of 11 mm/s, on two logs (800 kg
+    from the bottom stop, 1500 kg mid-mast); the baseline fitted from nominal values
+    (chi2/N 6.5). The start read from the slips is within 30 % of the truth in both
+    stick-slip parameters, and the ordinary fit from it (all parameters, one start)
+    ends at the noise floor with both within 10 % and three standard errors of the
+    truth. Measured: the refits from the diagnosis's grid starts stall at chi2/N 5.0
+    to 21.6 on these logs."""
+    truth = {"dFs": 150.0, "v_s": 0.011}
+    logs = _logs(truth)
+    base = jl.fit(logs, n_starts=1, workers=1)
+    assert base.chi2 / base.n_residuals > 3.0  # the stick-slip is plain in the error
+    (start,) = _starts("stick_slip", logs, base.params)
+    for name, value in truth.items():
+        assert start[name] == pytest.approx(value, rel=0.3), (name, start)
+    res = jl.fit(logs, effects="stick_slip", free="all,effects", init={**base.params, **start},
+                 n_starts=1, workers=1)  # fmt: skip
+    assert res.chi2 / res.n_residuals < 1.05, res.chi2 / res.n_residuals
+    for name, value in truth.items():
+        err = abs(res.params[name] - value)
+        assert err < 0.1 * value and err < 3 * res.stderr[name], (name, res.params[name])
