@@ -36,7 +36,8 @@ from .base import AbstractStatelessEffect, Scalar, Signals
 SLIP_SPEED = 0.012
 #: sections of constant, positive duty shorter than this [s] are not used
 MIN_SECTION_S = 5.0
-#: a section "slips" when it holds at least this many slips
+#: a section "slips" at a rate that gives this many slips in MIN_SECTION_S; with fewer
+#: slips in it, a section's peak speed and duration are not measured (0)
 MIN_SLIPS = 3
 #: relative errors the features are weighed by: rate, peak speed, duration
 FEATURE_REL = np.array([0.03, 0.03, 0.10])
