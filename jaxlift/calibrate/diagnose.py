@@ -335,7 +335,9 @@ def diagnose(
                     return None, held_before[0], None
                 return None, _heldout_chi2(base.params, base.effects, validate_logs), None
             s, guess = job
-            where = "" if guess is None else ", ".join(f"{k} = {v:g}" for k, v in guess.items())
+            where = (
+                "the logs" if guess is None else ", ".join(f"{k} = {v:g}" for k, v in guess.items())
+            )
             try:
                 if guess is None:
                     run = log_simulator(base.params, [*base.effects, s.effect], logs)

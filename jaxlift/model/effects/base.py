@@ -127,9 +127,9 @@ class AbstractEffect(eqx.Module):
                 solutions, or None if one fails.
 
         Returns:
-            Starts (any parameters, this effect's or the baseline's). The diagnosis
-            refits from these besides the grid over the effect's typical range
-            (:func:`jaxlift.calibrate.diagnose.refit_starts`). For effects whose
+            Starts (any parameters, this effect's or the baseline's), best first. The
+            diagnosis refits from the first, besides the grid over the effect's typical
+            range (:func:`jaxlift.calibrate.diagnose.refit_starts`). For effects whose
             least-squares surface is too rough for a grid of starts (stick-slip);
             none by default.
         """
