@@ -22,6 +22,7 @@ from jaxlift.fleet import (
     FleetError,
     discover_jobs,
     fleet_rows,
+    laplace_interval,
     pooled_inflation,
     run_jobs,
     trend_test,
@@ -138,6 +139,17 @@ def test_engine_retries_records_failures_and_skips_finished(tmp_path):
 
 
 # ------------------------------------------------------------------ trend test
+def test_laplace_interval_is_log_normal_and_never_overflows():
+    z = 1.6448536269514722  # the 95 % quantile of the standard normal: a 90 % interval
+    lo, hi = laplace_interval(2.0, 0.1)
+    assert lo == pytest.approx(2.0 * math.exp(-z * 0.05), rel=1e-12)
+    assert hi == pytest.approx(2.0 * math.exp(z * 0.05), rel=1e-12)
+    # a standard error 1000x the value (exp(1645) overflows): every positive value
+    assert laplace_interval(1e-3, 1.0) == (0.0, math.inf)
+    assert all(math.isnan(x) for x in laplace_interval(1.0, math.nan))
+    assert all(math.isnan(x) for x in laplace_interval(0.0, 1.0))
+
+
 def test_trend_test_recovers_a_known_slope():
     rng = np.random.default_rng(0)
     days = np.arange(8) * 7.0

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import pathlib
+import sys
 import time
 
 import jax
@@ -56,6 +57,7 @@ TRACKED = ("beta", "cf_con", "d")
 #: Probability of the intervals in the fleet table.
 INTERVAL = 0.9
 _Z = 1.6448536269514722  # standard normal quantile of 0.95: two-sided 90 %
+_MAX_EXP = math.log(sys.float_info.max)  # the largest finite exp's argument (709.78)
 
 
 def write_json(path: pathlib.Path, obj) -> None:
@@ -74,10 +76,15 @@ def laplace_interval(value: float, se: float) -> tuple[float, float]:
     """90 % interval of a positive parameter from its estimate and (AR(1)-inflated)
     standard error, normal on the log scale (``value * exp(±z se/value)``): the
     Laplace approximation of the posterior around the least-squares optimum with flat
-    priors on log values. NaN where the standard error is not finite."""
+    priors on log values. NaN where the standard error is not finite; ``(0, inf)``
+    where it is so large against the value that the factor overflows (measured in
+    the 50 x 8 fleet study: a job failed on ``math.exp`` overflowing)."""
     if not (math.isfinite(se) and value > 0):
         return math.nan, math.nan
-    f = math.exp(_Z * se / value)
+    x = _Z * se / value
+    if x > _MAX_EXP:  # the interval spans every positive value a float holds
+        return 0.0, math.inf
+    f = math.exp(x)
     return value / f, value * f
 
 
