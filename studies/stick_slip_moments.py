@@ -41,6 +41,7 @@ import scipy.optimize as so  # noqa: E402
 
 import jaxlift as jl  # noqa: E402
 from jaxlift.calibrate.fit import estimate_x0_offsets, offsets_and_chi2n  # noqa: E402
+from jaxlift.model.effects.stick_slip import constant_duty_sections  # noqa: E402
 
 NAMES = ("dFs", "v_s", "d", "cf_con", "beta")
 QUANTILES = (0.05, 0.1, 0.25, 0.5, 0.75, 0.9, 0.95)
@@ -58,14 +59,9 @@ UPPER = np.log([1e5, 0.2, 1e5, 1e4, 5e9])
 def sections(log: jl.Log, min_s: float = 3.0, skip_s: float = 1.0) -> list[tuple[int, int]]:
     """Sample ranges of the constant, positive-duty sections at least ``min_s`` long,
     without their first ``skip_s`` (the start transient)."""
-    u, dt = np.asarray(log.pwm), float(log.sample_period)
-    out, i = [], 0
-    while i < len(u):
-        j = i + int(np.argmax(u[i:] != u[i])) if np.any(u[i:] != u[i]) else len(u)
-        if u[i] > 0 and (j - i) * dt >= min_s:
-            out.append((i + int(skip_s / dt), j))
-        i = j
-    return out
+    skip = int(skip_s / float(log.sample_period))
+    ranges = constant_duty_sections(np.asarray(log.pwm), float(log.sample_period), min_s)
+    return [(a + skip, b) for a, b in ranges]
 
 
 def statistics(speeds, secs, dt: float, sig_v: float) -> np.ndarray:

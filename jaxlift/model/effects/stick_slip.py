@@ -145,8 +145,11 @@ def slip_feature_search(
     slips = {k: [f[0] * MIN_SECTION_S >= MIN_SLIPS for f in fs] for k, fs in measured.items()}
     if not any(itertools.chain.from_iterable(slips.values())):
         return []
-    start = {"cf_con": PLANT_PARAMS["cf_con"].nominal, "d": PLANT_PARAMS["d"].nominal}
-    start.update({k: float(params[k]) for k in SEARCHED[4:]})
+    start = {
+        "cf_con": PLANT_PARAMS["cf_con"].nominal,
+        "d": PLANT_PARAMS["d"].nominal,
+        "beta": float(params["beta"]),
+    }
 
     def cost(values: Mapping[str, float]) -> float:
         sols = simulate({**start, **values})
