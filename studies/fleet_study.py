@@ -4,6 +4,7 @@
     python studies/fleet_study.py run      --fleet runs/fleet/data --out runs/fleet/out
     python studies/fleet_study.py evaluate --fleet runs/fleet/data --out runs/fleet/out
     python studies/fleet_study.py scaling  --fleet runs/fleet/data --out runs/fleet/scaling
+    python studies/fleet_study.py merge    --earlier OLD/fleet.csv --out NEW --into MERGED
 
 ``generate`` writes a synthetic fleet (``studies/fleet_generator.py``: the detection
 study's independent generator, vehicles drifting by construction). ``run`` is the
@@ -13,7 +14,10 @@ flagged, the new effect named on the week it appears; it writes
 ``studies/results/fleet_study.md``. ``scaling`` measures jobs per hour with 1 and 2
 local workers on the same jobs, and the engine's own overhead per job (trivial jobs
 through the same engine), into ``studies/results/fleet_scaling.md`` (which
-``evaluate`` includes).
+``evaluate`` includes). ``merge`` replaces the rows of an earlier run's table by those
+of a newer run of some of its vehicles (e.g. jobs re-run on a fixed library) and writes
+the flags and the report of the merged table with the library's own functions; the
+evaluation then lists which jaxlift version made how many rows.
 """
 
 from __future__ import annotations
@@ -119,11 +123,67 @@ def cmd_evaluate(a) -> int:
     for r in table:
         verdicts[r["verdict"]] = verdicts.get(r["verdict"], 0) + 1
     lines.append(f"- Verdicts over all jobs: {verdicts}.")
+    versions = {}
+    for r in table:
+        versions[r["jaxlift_version"]] = versions.get(r["jaxlift_version"], 0) + 1
+    lines.append(
+        "- jaxlift version of the jobs (a failed job records none): "
+        + ", ".join(f"`{v or '-'}` {n}" for v, n in sorted(versions.items(), key=str))
+        + "."
+    )
     RESULTS.mkdir(parents=True, exist_ok=True)
     if (RESULTS / "fleet_scaling.md").exists():
         lines += ["", (RESULTS / "fleet_scaling.md").read_text()]
     (RESULTS / "fleet_study.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
+    return 0
+
+
+def _read_table_csv(path: pathlib.Path) -> list[dict]:
+    """A fleet table's rows as :func:`jaxlift.fleet.fleet_rows` makes them (numbers as
+    floats, missing numbers and a failed job's verdict as None)."""
+    import csv
+
+    from jaxlift.fleet.trends import COLUMNS
+
+    text = {"vehicle", "date", "status", "verdict", "effects", "interval", "error",
+            "job_key", "jaxlift_version"}  # fmt: skip
+    rows = []
+    with open(path, newline="", encoding="utf-8") as f:
+        for i, rec in enumerate(csv.DictReader(f), start=2):
+            if set(rec) != set(COLUMNS):
+                raise SystemExit(f"{path}: columns {sorted(rec)}; expected {COLUMNS}")
+            row = {}
+            for c in COLUMNS:
+                v = rec[c]
+                if c in text:
+                    row[c] = None if (c == "verdict" and v == "") else v
+                else:
+                    try:
+                        row[c] = None if v == "" else float(v)
+                    except ValueError:
+                        raise SystemExit(
+                            f"{path}, row {i}, column {c!r}: {v!r} is not a number"
+                        ) from None
+            rows.append(row)
+    return rows
+
+
+def cmd_merge(a) -> int:
+    """The earlier table with the newer run's rows in place of its own (same vehicle
+    and date; a newer row for a job the earlier table lacks is added), then the
+    flags, table and report of the merged rows."""
+    from jaxlift.fleet.workflow import write_fleet_outputs
+
+    earlier = _read_table_csv(pathlib.Path(a.earlier))
+    newer = _read_table_csv(pathlib.Path(a.out) / "fleet.csv")
+    replaced = {(r["vehicle"], r["date"]) for r in newer}
+    kept = [r for r in earlier if (r["vehicle"], r["date"]) not in replaced]
+    rows = sorted(kept + newer, key=lambda r: (r["vehicle"], r["date"]))
+    info = {"ran": len(newer), "skipped": len(kept),
+            "failed": sum(r["status"] != "ok" for r in rows)}  # fmt: skip
+    write_fleet_outputs(rows, a.into, {**info, "jobs": len(rows)})
+    print(f"{len(kept)} rows from {a.earlier}, {len(newer)} from {a.out}: wrote {a.into}")
     return 0
 
 
@@ -194,6 +254,11 @@ def main(argv=None) -> int:
     e.add_argument("--fleet", default="runs/fleet/data")
     e.add_argument("--out", default="runs/fleet/out")
     e.set_defaults(func=cmd_evaluate)
+    m = sub.add_parser("merge")
+    m.add_argument("--earlier", required=True, help="an earlier run's fleet.csv")
+    m.add_argument("--out", required=True, help="the newer run's output folder")
+    m.add_argument("--into", required=True, help="where the merged outputs go")
+    m.set_defaults(func=cmd_merge)
     s = sub.add_parser("scaling")
     s.add_argument("--fleet", default="runs/fleet/data")
     s.add_argument("--out", default="runs/fleet/scaling")

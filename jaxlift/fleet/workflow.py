@@ -34,13 +34,20 @@ def run_fleet(
     run = run_jobs(jobs, out, settings, workers=workers, scheduler=scheduler, retries=retries,
                    progress=progress, progress_bar=progress_bar, **kw)  # fmt: skip
     rows = fleet_rows(run.results, run.failures)
+    info = {"ran": run.ran, "skipped": run.skipped, "failed": len(run.failures)}
+    return write_fleet_outputs(rows, out, {**info, "jobs": len(jobs)})
+
+
+def write_fleet_outputs(rows: list[dict], out_dir: str | pathlib.Path, info: dict) -> dict:
+    """From the table's rows (:func:`~jaxlift.fleet.fleet_rows`): write the table, the
+    flags (``flags.json``) and the fleet report into ``out_dir``; return the summary
+    (``info``, e.g. jobs run/skipped/failed, and the flags and trend tests)."""
+    out = pathlib.Path(out_dir)
     write_table(rows, out)
     flags = vehicle_flags(rows)
-    info = {"ran": run.ran, "skipped": run.skipped, "failed": len(run.failures)}
     fleet_report(flags, out, info, TRACKED_INFO, METHOD)
     summary = {
         **info,
-        "jobs": len(jobs),
         "flagged": {v: f["flags"] for v, f in flags.items() if f["flags"]},
         "notes": {v: f["notes"] for v, f in flags.items() if f["notes"]},
         "tests": {v: f["tests"] for v, f in flags.items()},
