@@ -139,44 +139,14 @@ def cmd_evaluate(a) -> int:
     return 0
 
 
-def _read_table_csv(path: pathlib.Path) -> list[dict]:
-    """A fleet table's rows as :func:`jaxlift.fleet.fleet_rows` makes them (numbers as
-    floats, missing numbers and a failed job's verdict as None)."""
-    import csv
-
-    from jaxlift.fleet.trends import COLUMNS
-
-    text = {"vehicle", "date", "status", "verdict", "effects", "interval", "error",
-            "job_key", "jaxlift_version"}  # fmt: skip
-    rows = []
-    with open(path, newline="", encoding="utf-8") as f:
-        for i, rec in enumerate(csv.DictReader(f), start=2):
-            if set(rec) != set(COLUMNS):
-                raise SystemExit(f"{path}: columns {sorted(rec)}; expected {COLUMNS}")
-            row = {}
-            for c in COLUMNS:
-                v = rec[c]
-                if c in text:
-                    row[c] = None if (c == "verdict" and v == "") else v
-                else:
-                    try:
-                        row[c] = None if v == "" else float(v)
-                    except ValueError:
-                        raise SystemExit(
-                            f"{path}, row {i}, column {c!r}: {v!r} is not a number"
-                        ) from None
-            rows.append(row)
-    return rows
-
-
 def cmd_merge(a) -> int:
     """The earlier table with the newer run's rows in place of its own (same vehicle
     and date; a newer row for a job the earlier table lacks is added), then the
     flags, table and report of the merged rows."""
-    from jaxlift.fleet.workflow import write_fleet_outputs
+    from jaxlift.fleet import read_table, write_fleet_outputs
 
-    earlier = _read_table_csv(pathlib.Path(a.earlier))
-    newer = _read_table_csv(pathlib.Path(a.out) / "fleet.csv")
+    earlier = read_table(a.earlier)
+    newer = read_table(pathlib.Path(a.out) / "fleet.parquet")
     replaced = {(r["vehicle"], r["date"]) for r in newer}
     kept = [r for r in earlier if (r["vehicle"], r["date"]) not in replaced]
     rows = sorted(kept + newer, key=lambda r: (r["vehicle"], r["date"]))

@@ -7,6 +7,7 @@ import json
 import math
 import os
 import pathlib
+import re
 import signal
 import subprocess
 import sys
@@ -24,9 +25,12 @@ from jaxlift.fleet import (
     fleet_rows,
     laplace_interval,
     pooled_inflation,
+    read_table,
     run_jobs,
     trend_test,
     vehicle_flags,
+    write_fleet_outputs,
+    write_table,
 )
 from jaxlift.model.sequences import ramped_sequence
 
@@ -192,23 +196,88 @@ def test_pooled_inflation_restores_the_false_alarm_rate():
     assert naive > 150 and pooled <= 32, (naive, pooled)
 
 
-def test_flags_from_rows():
-    def row(v, d, verdict="none", beta=1e9, cf=50.0, status="ok"):
-        return {"vehicle": v, "date": d, "status": status, "verdict": verdict,
-                "beta": beta, "beta_se": 0.01 * beta, "cf_con": cf, "cf_con_se": 1.0,
-                "d": 300.0, "d_se": 10.0}  # fmt: skip
+def _row(v, d, verdict="none", beta=1e9, cf=50.0, status="ok"):
+    return {"vehicle": v, "date": d, "status": status, "verdict": verdict,
+            "beta": beta, "beta_se": 0.01 * beta, "cf_con": cf, "cf_con_se": 1.0,
+            "d": 300.0, "d_se": 10.0, "air": 0.003, "air_lo": 0.002,
+            "air_hi": 0.004}  # fmt: skip
 
+
+def _four_vehicles():
+    """A stable vehicle, one losing bulk modulus, one gaining friction, one whose
+    cylinder starts leaking in the third week."""
     dates = [f"2026-01-{d:02d}" for d in (1, 8, 15, 22)]
-    rows = [row("stable", d, beta=1e9 * (1 + 0.005 * (-1) ** i)) for i, d in enumerate(dates)]
-    rows += [row("airy", d, beta=1e9 * 0.85**i) for i, d in enumerate(dates)]
-    rows += [row("sticky", d, cf=50.0 * 1.3**i) for i, d in enumerate(dates)]
-    rows += [row("leaky", d, verdict="leakage" if i >= 2 else "none") for i, d in enumerate(dates)]
-    f = vehicle_flags(rows)
+    rows = [_row("stable", d, beta=1e9 * (1 + 0.005 * (-1) ** i)) for i, d in enumerate(dates)]
+    rows += [_row("airy", d, beta=1e9 * 0.85**i) for i, d in enumerate(dates)]
+    rows += [_row("sticky", d, cf=50.0 * 1.3**i) for i, d in enumerate(dates)]
+    rows += [_row("leaky", d, verdict="leakage" if i >= 2 else "none") for i, d in enumerate(dates)]
+    return rows
+
+
+def test_flags_from_rows():
+    f = vehicle_flags(_four_vehicles())
     assert f["stable"]["flags"] == [] and f["leaky"]["flags"] == [
         "new effect since 2026-01-15: leakage"
     ]
     assert len(f["airy"]["flags"]) == 1 and f["airy"]["flags"][0].startswith("air content rising")
     assert len(f["sticky"]["flags"]) == 1 and "friction rising" in f["sticky"]["flags"][0]
+
+
+def test_a_table_read_back_gives_the_same_flags_and_can_be_merged(tmp_path):
+    """read_table inverts write_table (Parquet and CSV): the flags from the rows read
+    back are those from the rows written; an earlier table with a failed job, merged
+    with a newer run's row for that job, is flagged as if the job had never failed."""
+    failed = {"vehicle": "stable", "date": "2026-01-29", "status": "failed",
+              "error": "OverflowError: math range error"}  # fmt: skip
+    rows = fleet_rows([*_four_vehicles()], [failed])
+    write_table(rows, tmp_path / "old")
+    want = vehicle_flags(rows)
+    assert want["stable"]["flags"] == ["1 job(s) failed: 2026-01-29"]
+    for name in ("fleet.parquet", "fleet.csv"):
+        back = read_table(tmp_path / "old" / name)
+        assert [(r["vehicle"], r["date"], r["status"], r["verdict"]) for r in back] == [
+            (r["vehicle"], r["date"], r["status"], r["verdict"]) for r in rows
+        ]
+        got = vehicle_flags(back)
+        assert {v: (f["flags"], f["notes"]) for v, f in got.items()} == {
+            v: (f["flags"], f["notes"]) for v, f in want.items()
+        }
+        for v in want:
+            for p, t in want[v]["tests"].items():
+                assert got[v]["tests"][p]["z"] == pytest.approx(t["z"], rel=1e-12, nan_ok=True)
+    # the failed job re-run (e.g. on a fixed library) replaces the earlier row
+    newer = fleet_rows([_row("stable", "2026-01-29", beta=1e9)])
+    merged = [r for r in read_table(tmp_path / "old" / "fleet.csv") if r["status"] == "ok"]
+    summary = write_fleet_outputs(merged + newer, tmp_path / "merged",
+                                  {"ran": 1, "skipped": len(merged), "failed": 0})  # fmt: skip
+    assert "stable" not in summary["flagged"]
+    assert set(summary["flagged"]) == {"airy", "sticky", "leaky"}
+    assert len(read_table(tmp_path / "merged" / "fleet.parquet")) == len(rows)
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda t: t.replace("cf_con_se,", "cf_con_sd,", 1), "column(s) ['cf_con_se'] missing"),
+        (lambda t: t.replace("2026-01-08", "8 Jan 2026", 1), "row 3, column 'date'"),
+        (lambda t: t.replace(",50.0,", ",fifty,", 1), "row 2, column 'cf_con': 'fifty'"),
+    ],
+)
+def test_a_bad_table_is_named(tmp_path, edit, message):
+    write_table(fleet_rows(_four_vehicles()), tmp_path)
+    bad = tmp_path / "bad.csv"
+    bad.write_text(edit((tmp_path / "fleet.csv").read_text()))
+    with pytest.raises(FleetError, match=re.escape(f"{bad}") + ".*" + re.escape(message)):
+        read_table(bad)
+
+
+def test_a_file_that_is_no_table_is_named(tmp_path):
+    with pytest.raises(FleetError, match="no such file"):
+        read_table(tmp_path / "fleet.parquet")
+    junk = tmp_path / "fleet.parquet"
+    junk.write_text("not parquet")
+    with pytest.raises(FleetError, match="not a readable Parquet file"):
+        read_table(junk)
 
 
 # ------------------------------------------------------------------ the command

@@ -3,8 +3,15 @@
 from .engine import FleetRun, run_jobs
 from .job import DEFAULT_SETTINGS, TRACKED, laplace_interval, run_job
 from .manifest import FleetError, FleetJob, discover_jobs
-from .trends import fleet_rows, pooled_inflation, trend_test, vehicle_flags, write_table
-from .workflow import run_fleet
+from .trends import (
+    fleet_rows,
+    pooled_inflation,
+    read_table,
+    trend_test,
+    vehicle_flags,
+    write_table,
+)
+from .workflow import run_fleet, write_fleet_outputs
 
 __all__ = [
     "DEFAULT_SETTINGS",
@@ -16,10 +23,12 @@ __all__ = [
     "fleet_rows",
     "laplace_interval",
     "pooled_inflation",
+    "read_table",
     "run_job",
     "run_fleet",
     "run_jobs",
     "trend_test",
     "vehicle_flags",
+    "write_fleet_outputs",
     "write_table",
 ]

@@ -28,6 +28,7 @@ import pyarrow.parquet as pq
 from scipy import stats
 
 from .job import TRACKED
+from .manifest import FleetError
 
 #: name -> (what, unit, scale to the unit, direction that needs service, message)
 TRACKED_INFO = {
@@ -60,18 +61,21 @@ def fleet_rows(results: Sequence[dict], failures: Sequence[dict] = ()) -> list[d
     return sorted(rows, key=lambda r: (r["vehicle"], r["date"]))
 
 
+#: the table's text columns (the others but ``date`` are numbers)
+TEXT_COLUMNS = {"vehicle", "status", "verdict", "effects", "interval", "error", "job_key",
+                "jaxlift_version"}  # fmt: skip
+
+
 def write_table(rows: Sequence[dict], out_dir: str | pathlib.Path) -> list[pathlib.Path]:
     """``fleet.parquet`` (typed columns; dates as dates) and ``fleet.csv`` beside it."""
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    text = {"vehicle", "status", "verdict", "effects", "interval", "error", "job_key",
-            "jaxlift_version"}  # fmt: skip
     arrays = {}
     for c in COLUMNS:
         vals = [r.get(c) for r in rows]
         if c == "date":
             arrays[c] = pa.array([datetime.date.fromisoformat(v) for v in vals], pa.date32())
-        elif c in text:
+        elif c in TEXT_COLUMNS:
             arrays[c] = pa.array([None if v is None else str(v) for v in vals], pa.string())
         else:
             arrays[c] = pa.array([math.nan if v is None else float(v) for v in vals], pa.float64())
@@ -82,6 +86,54 @@ def write_table(rows: Sequence[dict], out_dir: str | pathlib.Path) -> list[pathl
         for r in rows:
             w.writerow({c: "" if r.get(c) is None else r.get(c) for c in COLUMNS})
     return [out / "fleet.parquet", out / "fleet.csv"]
+
+
+def read_table(path: str | pathlib.Path) -> list[dict]:
+    """The rows of a fleet table written by :func:`write_table` (``fleet.parquet`` or
+    ``fleet.csv``), as :func:`fleet_rows` makes them: dates as ISO strings, numbers as
+    floats (a missing one NaN), a missing text "" and a failed job's verdict None. With
+    :func:`~jaxlift.fleet.write_fleet_outputs` it lets an earlier run's table be
+    combined with a newer run's (docs/fleet.md, "After an upgrade"). Raises
+    :class:`~jaxlift.fleet.FleetError` naming the file (and row and column) when it is
+    not such a table."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise FleetError(f"{path}: no such file (expected a fleet.parquet or fleet.csv)")
+    if path.suffix == ".parquet":
+        try:
+            recs = pq.read_table(path).to_pylist()
+        except (OSError, ValueError) as err:  # pyarrow's: not Parquet, truncated, ...
+            raise FleetError(f"{path}: not a readable Parquet file ({err})") from None
+    else:
+        with open(path, newline="", encoding="utf-8") as f:
+            recs = list(csv.DictReader(f))
+    rows = []
+    for i, rec in enumerate(recs, start=2):  # CSV: row 1 is the header
+        missing = [c for c in COLUMNS if c not in rec]
+        if missing:
+            raise FleetError(f"{path}: column(s) {missing} missing; expected {COLUMNS}")
+        row = {}
+        for c in COLUMNS:
+            v = rec[c]
+            if c == "date":
+                row[c] = v.isoformat() if isinstance(v, datetime.date) else str(v)
+            elif c in TEXT_COLUMNS:
+                row[c] = None if c == "verdict" and v in ("", None) else ("" if v is None else v)
+            else:
+                try:
+                    row[c] = math.nan if v in ("", None) else float(v)
+                except ValueError:
+                    raise FleetError(
+                        f"{path}, row {i}, column {c!r}: {v!r} is not a number"
+                    ) from None
+        try:
+            datetime.date.fromisoformat(row["date"])
+        except ValueError:
+            raise FleetError(
+                f"{path}, row {i}, column 'date': {row['date']!r} is not a date (YYYY-MM-DD)"
+            ) from None
+        rows.append(row)
+    return rows
 
 
 def trend_test(
