@@ -278,6 +278,10 @@ def test_a_file_that_is_no_table_is_named(tmp_path):
     junk.write_text("not parquet")
     with pytest.raises(FleetError, match="not a readable Parquet file"):
         read_table(junk)
+    empty = tmp_path / "fleet.csv"
+    empty.write_text("")
+    with pytest.raises(FleetError, match=r"column\(s\) \['vehicle', 'date'"):
+        read_table(empty)
 
 
 # ------------------------------------------------------------------ the command

@@ -101,17 +101,19 @@ def read_table(path: str | pathlib.Path) -> list[dict]:
         raise FleetError(f"{path}: no such file (expected a fleet.parquet or fleet.csv)")
     if path.suffix == ".parquet":
         try:
-            recs = pq.read_table(path).to_pylist()
+            table = pq.read_table(path)
         except (OSError, ValueError) as err:  # pyarrow's: not Parquet, truncated, ...
             raise FleetError(f"{path}: not a readable Parquet file ({err})") from None
+        names, recs = table.column_names, table.to_pylist()
     else:
         with open(path, newline="", encoding="utf-8") as f:
-            recs = list(csv.DictReader(f))
+            reader = csv.DictReader(f)
+            names, recs = reader.fieldnames or [], list(reader)
+    missing = [c for c in COLUMNS if c not in names]
+    if missing:
+        raise FleetError(f"{path}: column(s) {missing} missing; expected {COLUMNS}")
     rows = []
     for i, rec in enumerate(recs, start=2):  # CSV: row 1 is the header
-        missing = [c for c in COLUMNS if c not in rec]
-        if missing:
-            raise FleetError(f"{path}: column(s) {missing} missing; expected {COLUMNS}")
         row = {}
         for c in COLUMNS:
             v = rec[c]
