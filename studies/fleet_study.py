@@ -4,7 +4,7 @@
     python studies/fleet_study.py run      --fleet runs/fleet/data --out runs/fleet/out
     python studies/fleet_study.py evaluate --fleet runs/fleet/data --out runs/fleet/out
     python studies/fleet_study.py scaling  --fleet runs/fleet/data --out runs/fleet/scaling
-    python studies/fleet_study.py merge    --earlier OLD/fleet.csv --out NEW --into MERGED
+    python studies/fleet_study.py merge    --earlier OLD/fleet.csv --out NEW [NEW ...] --into DIR
 
 ``generate`` writes a synthetic fleet (``studies/fleet_generator.py``: the detection
 study's independent generator, vehicles drifting by construction). ``run`` is the
@@ -140,20 +140,23 @@ def cmd_evaluate(a) -> int:
 
 
 def cmd_merge(a) -> int:
-    """The earlier table with the newer run's rows in place of its own (same vehicle
+    """The earlier table with the newer runs' rows in place of its own (same vehicle
     and date; a newer row for a job the earlier table lacks is added), then the
-    flags, table and report of the merged rows."""
+    flags, table and report of the merged rows. The newer runs must not share a job."""
     from jaxlift.fleet import read_table, write_fleet_outputs
 
     earlier = read_table(a.earlier)
-    newer = read_table(pathlib.Path(a.out) / "fleet.parquet")
+    newer = [r for out in a.out for r in read_table(pathlib.Path(out) / "fleet.parquet")]
     replaced = {(r["vehicle"], r["date"]) for r in newer}
+    if len(replaced) < len(newer):
+        raise SystemExit(f"the runs in --out {' '.join(a.out)} share a vehicle and date")
     kept = [r for r in earlier if (r["vehicle"], r["date"]) not in replaced]
     rows = sorted(kept + newer, key=lambda r: (r["vehicle"], r["date"]))
     info = {"ran": len(newer), "skipped": len(kept),
             "failed": sum(r["status"] != "ok" for r in rows)}  # fmt: skip
     write_fleet_outputs(rows, a.into, {**info, "jobs": len(rows)})
-    print(f"{len(kept)} rows from {a.earlier}, {len(newer)} from {a.out}: wrote {a.into}")
+    print(f"{len(kept)} rows from {a.earlier}, {len(newer)} from {' '.join(a.out)}: "
+          f"wrote {a.into}")  # fmt: skip
     return 0
 
 
@@ -226,7 +229,7 @@ def main(argv=None) -> int:
     e.set_defaults(func=cmd_evaluate)
     m = sub.add_parser("merge")
     m.add_argument("--earlier", required=True, help="an earlier run's fleet.csv")
-    m.add_argument("--out", required=True, help="the newer run's output folder")
+    m.add_argument("--out", required=True, nargs="+", help="the newer runs' output folders")
     m.add_argument("--into", required=True, help="where the merged outputs go")
     m.set_defaults(func=cmd_merge)
     s = sub.add_parser("scaling")
