@@ -40,8 +40,7 @@ import jax
 jax.config.update("jax_enable_x64", True)  # a program's start: the place to do it
 
 import jaxlift as jl  # noqa: E402
-from jaxlift.calibrate.diagnose import log_simulator  # noqa: E402
-from jaxlift.calibrate.fit import offsets_and_chi2n  # noqa: E402
+from jaxlift.calibrate.fit import log_simulator, offsets_and_chi2n  # noqa: E402
 from jaxlift.model.effects.stick_slip import constant_duty_sections, slip_features  # noqa: E402
 
 SHOWN = ("beta", "cf_con", "cf_in", "cf_out", "d", "dFs", "v_s")

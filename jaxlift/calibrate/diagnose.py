@@ -49,16 +49,10 @@ import numpy as np
 import pandas as pd
 
 from ..analysis.regimes import stage_of
-from ..model.build import all_param_infos, make_effects, with_params
 from ..model.effects import EFFECTS
-from ..model.inputs import Inputs
 from ..model.log import Log
-from ..model.params import ParameterError
-from ..model.plant import Plant
-from ..model.simulate import simulate
-from ..model.solution import Solution
 from .experiment import make_experiments
-from .fit import fit, heldout_residuals, offsets_and_chi2n
+from .fit import fit, heldout_residuals, log_simulator, offsets_and_chi2n
 from .parallel import thread_map
 from .problem import Problem
 from .result import FitResult, pooled_rho1
@@ -635,29 +629,6 @@ def refit_starts(effect: str, screen_estimate: float) -> list[dict[str, float]]:
             if not any(abs(math.log(v / st[par])) < math.log(2.0) for st in starts):
                 starts.append({par: v})
     return starts
-
-
-def log_simulator(
-    params: Mapping[str, float], effects: Sequence[str], logs: Sequence[Log]
-) -> Callable[[Mapping[str, float]], list[Solution] | None]:
-    """``run(values)``: the model with ``effects``, at ``params`` updated by ``values``
-    (physical units; parameters not given at their nominal values), simulated on each
-    of ``logs`` from its first sample; None if a value is out of its bounds or a
-    simulation fails. The simulator :meth:`~jaxlift.AbstractEffect.starts_from_logs` gets."""
-    effs = make_effects(effects)
-    infos = all_param_infos(effs)
-    inputs = [Inputs.from_log(lg) for lg in logs]
-
-    def run(values: Mapping[str, float]) -> list[Solution] | None:
-        own = {k: v for k, v in {**params, **values}.items() if k in infos}
-        try:
-            plant, model = with_params(Plant(), effs, own)
-        except ParameterError:
-            return None
-        sols = [simulate(plant, model, inp) for inp in inputs]
-        return sols if all(bool(sol.ok) for sol in sols) else None
-
-    return run
 
 
 def _log_between(lo: float, hi: float, q: float) -> float:

@@ -341,7 +341,7 @@ def prepare_posterior(
         say("least squares: full staged fit from the nominal values (no --params given)")
         full = fit(
             logs, effects=eff_names, free="all", staged=True, n_starts=n_starts, seed=seed,
-            progress=progress,
+            progress=progress, starts_from_logs=True,
         )  # fmt: skip
         params = full.params
     else:

@@ -144,10 +144,12 @@ def run_fit(
     seed: int = 0,
     out_dir: str | pathlib.Path | None = None,
     progress: Callable[[str], None] | None = None,
+    starts_from_logs: bool = True,
 ) -> tuple[FitResult, dict]:
     """Fit, compare before/after on fitted and held-out logs, and (if ``out_dir``)
     write params.json, metrics.json, figures and the report. Returns the fit and the
-    metrics dictionary."""
+    metrics dictionary. ``starts_from_logs``: the last stage also starts from what the
+    effects read from the logs (:func:`~jaxlift.fit`; stick-slip's slip statistics)."""
     result = fit(
         fit_logs,
         effects=effects,
@@ -157,6 +159,7 @@ def run_fit(
         n_starts=n_starts,
         seed=seed,
         progress=progress,
+        starts_from_logs=starts_from_logs,
     )
     metrics = {
         "effects": result.effects,
