@@ -251,16 +251,14 @@ def fit(
     else:
         stage_sets = [free_all]
     if starts_from_logs:
-        # the starts are read at a fit of the model without the effects that read them
-        # (where the diagnosis reads them): a stage of everything else first
-        held = (
-            {n for e in effs for n in type(e).param_infos()}
-            if any(map(_reads_starts, effs))
-            else set()
-        )
-        rest = [n for n in free_all if n not in held]
-        if rest and len(rest) < len(free_all) and rest not in stage_sets:
-            stage_sets.insert(len(stage_sets) - 1, rest)
+        # the starts are read at a fit of the model without its effects (where the
+        # diagnosis reads them): a stage of everything else first, when an effect
+        # that reads starts has a free parameter
+        if any(_reads_starts(e) and set(e.param_infos()) & set(free_all) for e in effs):
+            held = {n for e in effs for n in e.param_infos()}
+            rest = [n for n in free_all if n not in held]
+            if rest and rest not in stage_sets:
+                stage_sets.insert(len(stage_sets) - 1, rest)
 
     values = {k: float(v) for k, v in model_params(plant0, effs).items()}
     initial = dict(values)
