@@ -79,22 +79,20 @@ def _starts(effect, logs, params):
     return jl.EFFECTS[effect].starts_from_logs(logs, params, run)
 
 
-def test_a_steady_lift_near_the_threshold_is_not_read_as_slipping():
+def test_a_steady_lift_near_the_threshold_reads_as_slipping_without_stops():
     """Without stick-slip, a lift at ~11 mm/s, its noisy speed crossing the 12 mm/s
     threshold again and again, has slips by the count (more than MIN_SLIPS in
-    MIN_SECTION_S), but the fork never stops: ``section_kinds`` leaves the section out
-    and the search does not run. (Measured besides: at ~17 mm/s from rest, the 1500 kg
-    log's oscillations after the start crossed it 4 times in 6 s; at 24 mm/s and above,
-    never.)"""
-    logs = _logs({}, [(0.0, 1.0), (0.12, 7.0), (0.0, 1.0)])
-    for log in logs:
+    MIN_SECTION_S), so the search's first reading runs on it (time, not a wrong
+    verdict: the refit's BIC and held-out tests decide); but the fork never stops, so
+    ``section_kinds`` marks it ``ignored`` and the second reading leaves it out.
+    (Measured besides: at ~17 mm/s from rest, the 1500 kg log's oscillations after
+    the start crossed it 4 times in 6 s; at 24 mm/s and above, never.)"""
+    for log in _logs({}, [(0.0, 1.0), (0.12, 7.0), (0.0, 1.0)]):
         ((a, b),) = sections = constant_duty_sections(log.pwm, log.sample_period)
         assert 0.008 < np.mean(log.speed_mps[a:b]) < 0.012
         assert slip_features(log.speed_mps[a:b], log.sample_period)[0] > 3 / 5.0
         assert stuck_share(log.speed_mps[a:b]) < MIN_STUCK_SHARE
         assert section_kinds(log.speed_mps, log.sample_period, sections) == ["ignored"]
-    params = jl.model_params(*jl.with_params(jl.Plant(), (), TRUTH))
-    assert _starts("stick_slip", logs, params) == []
 
 
 def test_section_kinds_count_slips_only_where_the_fork_stops():
@@ -132,20 +130,27 @@ def test_no_start_without_slips_or_without_a_speed_column():
 def test_start_from_the_slips_leads_the_fit_to_the_truth():
     """150 N of breakaway friction at a Stribeck speed of 11 mm/s, on two logs (800 kg
     from the bottom stop, 1500 kg mid-mast); the baseline fitted from nominal values
-    (chi2/N 6.5). The start read from the slips is within 30 % of the truth in both
-    stick-slip parameters, and the ordinary fit from it (all parameters, one start)
-    ends at the noise floor with both within 10 % and three standard errors of the
-    truth. Measured: the refits from the diagnosis's grid starts stall at chi2/N 5.0
-    to 21.6 on these logs."""
+    (chi2/N 6.5). The slips are read twice (one section of the 1500 kg log slips
+    without the fork stopping: ``ignored`` in the second reading); the start of the
+    first reading is within 30 % of the truth in both stick-slip parameters, and the
+    ordinary fits from the starts (all parameters, one start each; the best, as in
+    the diagnosis) end at the noise floor with both within 10 % and three standard
+    errors of the truth. Measured: the refits from the diagnosis's grid starts stall
+    at chi2/N 5.0 to 21.6 on these logs; the second reading alone reads 356 N at 29
+    mm/s, a point on the ridge of equal features."""
     truth = {"dFs": 150.0, "v_s": 0.011}
     logs = _logs(truth)
     base = jl.fit(logs, n_starts=1, workers=1)
     assert base.chi2 / base.n_residuals > 3.0  # the stick-slip is plain in the error
-    (start,) = _starts("stick_slip", logs, base.params)
+    starts = _starts("stick_slip", logs, base.params)
+    assert len(starts) == 2
     for name, value in truth.items():
-        assert start[name] == pytest.approx(value, rel=0.3), (name, start)
-    res = jl.fit(logs, effects="stick_slip", free="all,effects", init={**base.params, **start},
-                 n_starts=1, workers=1)  # fmt: skip
+        assert starts[0][name] == pytest.approx(value, rel=0.3), (name, starts[0])
+    res = min(
+        (jl.fit(logs, effects="stick_slip", free="all,effects", init={**base.params, **start},
+                n_starts=1, workers=1) for start in starts),
+        key=lambda r: r.chi2,
+    )  # fmt: skip
     assert res.chi2 / res.n_residuals < 1.05, res.chi2 / res.n_residuals
     for name, value in truth.items():
         err = abs(res.params[name] - value)

@@ -338,12 +338,19 @@ def diagnose(
                     found = EFFECTS[s.effect].starts_from_logs(logs, base.params, run)
                     if not found:
                         return None, None, None  # the effect reads none from these logs
-                    guess = found[0]
-                    where = "the logs: " + ", ".join(f"{k} = {v:.4g}" for k, v in guess.items())
-                init = {**base.params, **guess}
-                res = fit(logs, effects=[*base.effects, s.effect], free=f"{free},effects",
-                          init=init, staged=False, n_starts=1,
-                          seed=seed, workers=1)  # fmt: skip
+                else:
+                    found = [guess]
+                res = None  # the best refit from the start(s): stick-slip reads up to two
+                for start in found:
+                    one = fit(logs, effects=[*base.effects, s.effect], free=f"{free},effects",
+                              init={**base.params, **start}, staged=False, n_starts=1,
+                              seed=seed, workers=1)  # fmt: skip
+                    if res is None or one.chi2 < res.chi2:
+                        res = one
+                if guess is None:
+                    where = "the logs: " + "; ".join(
+                        ", ".join(f"{k} = {v:.4g}" for k, v in start.items()) for start in found
+                    )
                 if not math.isfinite(res.chi2):
                     return None, None, f"refit from {where}: every start failed"
                 # held-out error of this refit here, in the same thread: its compilation (a
