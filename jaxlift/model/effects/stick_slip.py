@@ -46,10 +46,10 @@ MIN_SLIPS = 3
 #: over three standard deviations of the smoothed noise above zero)
 STUCK_SPEED = 0.006
 #: ... and the second search reads a section's slips only if the fork is stuck in at
-#: least this share of it (:func:`section_kinds`). Measured on the 15 stick-slip cases of the detection and
-#: coverage studies (studies/DETECTION.md, fifteenth sitting): every section where
-#: jaxlift's model *at the truth* missed the log's features (cost 126 to 8 744) had a
-#: share of 0.00-0.02, every other one 0.06 or more.
+#: least this share of it (:func:`section_kinds`). Measured on the 15 stick-slip cases
+#: of the detection and coverage studies (studies/DETECTION.md, fifteenth sitting):
+#: every section where jaxlift's model *at the truth* missed the log's features (cost
+#: 126 to 8 744) had a share of 0.00-0.02, every other one 0.06 or more.
 MIN_STUCK_SHARE = 0.05
 #: relative errors the features are weighed by: rate, peak speed, duration
 FEATURE_REL = np.array([0.03, 0.03, 0.10])
