@@ -28,11 +28,8 @@ import numpy as np  # noqa: E402
 import jaxlift as jl  # noqa: E402
 from jaxlift.calibrate.fit import log_simulator  # noqa: E402
 from jaxlift.model.effects.stick_slip import (  # noqa: E402
-    FEATURE_REL,
-    MIN_SECTION_S,
-    MIN_SLIPS,
-    NO_SLIP_RATE,
     constant_duty_sections,
+    section_cost,
     section_kinds,
     slip_features,
     stuck_share,
@@ -54,10 +51,7 @@ def main(cases: list[str]) -> int:
             for (a, b), kind in zip(secs, section_kinds(speed, dt, secs)):
                 f = slip_features(speed[a:b], dt)
                 g = slip_features(np.asarray(sols[k].speed)[a:b], dt)
-                if f[0] * MIN_SECTION_S >= MIN_SLIPS:
-                    cost = float(np.sum(((g - f) / (FEATURE_REL * np.where(f > 0, f, 1))) ** 2))
-                else:
-                    cost = float((g[0] / NO_SLIP_RATE) ** 2)
+                cost = section_cost(f, g, kind != "still")  # "ignored" counted as slips
                 if kind == "still" and cost <= 5:
                     continue
                 v = np.convolve(speed[a:b], np.ones(3) / 3, mode="same")

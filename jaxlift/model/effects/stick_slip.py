@@ -155,6 +155,15 @@ def section_kinds(speed: np.ndarray, dt: float, sections) -> list[str]:
     return kinds
 
 
+def section_cost(measured: np.ndarray, simulated: np.ndarray, slips: bool) -> float:
+    """The search's cost of one section: the squared relative errors of the
+    simulated features against the measured ones (:data:`FEATURE_REL`) where the log
+    slips, else the simulated slip rate against :data:`NO_SLIP_RATE`."""
+    if slips:
+        return float(np.sum(((simulated - measured) / (FEATURE_REL * measured)) ** 2))
+    return float((simulated[0] / NO_SLIP_RATE) ** 2)
+
+
 def constant_duty_sections(pwm: np.ndarray, dt: float, min_s: float = MIN_SECTION_S):
     """Sample ranges ``(a, b)`` of the sections of constant, positive duty of at least
     ``min_s`` [s]."""
@@ -221,11 +230,7 @@ def slip_feature_search(
             for (a, b), f, kind in zip(secs[k], measured[k], reading[k]):
                 if kind == "ignored":
                     continue
-                g = slip_features(v[a:b], dt)
-                if kind == "slips":
-                    c += float(np.sum(((g - f) / (FEATURE_REL * f)) ** 2))
-                else:  # no slips in the log here: none in the model
-                    c += float((g[0] / NO_SLIP_RATE) ** 2)
+                c += section_cost(f, slip_features(v[a:b], dt), kind == "slips")
         return c
 
     starts: list[dict[str, float]] = []
