@@ -181,6 +181,30 @@ def clopper_pearson(k: int, n: int, conf: float = 0.95) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
+def _arviz_figures(usable: list[dict], to: pathlib.Path) -> None:
+    """ArviZ's calibration plots of the PIT values (``arviz_plots.plot_ecdf_pit``): the
+    ECDF of the PIT minus the uniform one (``pit_ecdf.png``), and the same for the
+    coverage of the central intervals at every level (``coverage_ecdf.png``: below 0 =
+    the intervals contain the truth less often than they claim). Orange points are the
+    ones ArviZ's uniformity test (``pot_c``) marks as suspicious; a PIT of exactly 0 or 1
+    (the truth outside every draw) is always one of them."""
+    import arviz_plots as azp  # noqa: PLC0415 (only the report needs it)
+    from arviz_base import from_dict  # noqa: PLC0415
+
+    names = {k: re.sub(r"\W+", "_", k).strip("_") for k in TARGETS}
+    pits = {names[k]: np.array([[r["targets"][k]["pit"] for r in usable]]) for k in TARGETS}
+    dt = from_dict({"prior_sbc": pits})
+    for coverage, fname, what in (
+        (False, "pit_ecdf.png", "ECDF of the PIT minus the uniform CDF"),
+        (True, "coverage_ecdf.png", "coverage of the central intervals minus their level"),
+    ):
+        pc = azp.plot_ecdf_pit(dt, coverage=coverage, backend="matplotlib")
+        fig = pc.viz["figure"].item()
+        fig.suptitle(f"{what} ({len(usable)} cases; ArviZ plot_ecdf_pit)", fontsize=9, y=1.06)
+        fig.savefig(to / fname, dpi=110, bbox_inches="tight")
+        plt.close(fig)
+
+
 def report(out: pathlib.Path, to: pathlib.Path) -> str:
     results = []
     for p in sorted(out.glob("case_*/result.json")):
@@ -207,6 +231,9 @@ def report(out: pathlib.Path, to: pathlib.Path) -> str:
     fig.suptitle("PIT histograms: flat when the intervals are calibrated")
     fig.tight_layout()
     fig.savefig(to / "pit.png", dpi=110)
+    plt.close(fig)
+    if usable:
+        _arviz_figures(usable, to)
     n_fail = len(results) - len(usable)
     lines = [
         "# Coverage of the posterior intervals",
@@ -220,6 +247,17 @@ def report(out: pathlib.Path, to: pathlib.Path) -> str:
         *_table(rows),
         "",
         "![PIT histograms](pit.png)",
+        "",
+        "The same PIT values through ArviZ's calibration plot (`plot_ecdf_pit`): the "
+        "ECDF of the PIT minus the uniform CDF, and the coverage of the central "
+        "interval at every level minus that level (a curve below 0 = intervals that "
+        "contain the truth less often than they claim). Orange points are those ArviZ's "
+        "uniformity test marks; a PIT of exactly 0 or 1 (the truth outside every draw, "
+        "the stick-slip fits in another basin) is always one, so its p-value reads 0.",
+        "",
+        "![Delta-ECDF of the PIT](pit_ecdf.png)",
+        "",
+        "![Coverage at every level](coverage_ecdf.png)",
         "",
         "By kind of case (the misses are not spread evenly: a fit of the stick-slip model "
         "from nominal values can end in another basin of its rough least-squares surface, "

@@ -1,0 +1,66 @@
+"""The coverage study's report (studies/coverage.py, issue #17) counts what it claims.
+
+The cases are made up here (PIT values and interval flags chosen by hand), so the
+expected rates are known without running a fit or a chain."""
+
+import csv
+import importlib.util
+import json
+import pathlib
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def coverage():
+    spec = importlib.util.spec_from_file_location(
+        "coverage_study", ROOT / "studies" / "coverage.py"
+    )
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _case(out: pathlib.Path, cid: str, pits: list[float], converged: bool = True) -> None:
+    targets = {}
+    for k, pit in zip(("beta", "cf_con", "d", "cf_out*cf_in^5"), pits, strict=True):
+        targets[k] = {"truth": 1.0, "pit": pit, "in_50": 0.25 <= pit <= 0.75,
+                      "in_90": 0.05 <= pit <= 0.95}  # fmt: skip
+    result = {"case_id": cid, "kind": "null", "hidden_effects": [], "steps": {},
+              "fit_chi2n": {"fit_1": 1.0}, "converged": converged, "targets": targets}  # fmt: skip
+    (out / cid).mkdir(parents=True)
+    (out / cid / "result.json").write_text(json.dumps(result))
+
+
+def test_report_counts_the_intervals_that_contain_the_truth(coverage, tmp_path):
+    out, to = tmp_path / "runs", tmp_path / "report"
+    _case(out, "case_000", [0.5, 0.9, 0.99, 0.3])
+    _case(out, "case_001", [0.1, 0.5, 0.5, 1.0])
+    _case(out, "case_002", [0.6, 0.02, 0.4, 0.7])
+    _case(out, "case_003", [0.5, 0.5, 0.5, 0.5], converged=False)  # left out of the rates
+    text = coverage.report(out, to)
+    with open(to / "coverage.csv", encoding="utf-8") as fh:
+        rows = {r["parameter"]: r for r in csv.DictReader(fh)}
+    # beta: PIT 0.5, 0.1, 0.6 -> 50 %: 2 of 3, 90 %: 3 of 3; d: 0.99, 0.5, 0.4 -> 2/3, 2/3
+    assert rows["beta"]["n"] == "3"
+    assert float(rows["beta"]["cover_50"]) == pytest.approx(2 / 3)
+    assert float(rows["beta"]["cover_90"]) == pytest.approx(1.0)
+    assert float(rows["cf_con"]["cover_90"]) == pytest.approx(2 / 3)
+    assert float(rows["d"]["cover_50"]) == pytest.approx(2 / 3)
+    assert float(rows["cf_out*cf_in^5"]["cover_90"]) == pytest.approx(2 / 3)
+    assert "case_003 (null): the chain did not reach 50 tau" in text
+    for png in ("pit.png", "pit_ecdf.png", "coverage_ecdf.png"):
+        assert (to / png).stat().st_size > 5_000
+
+
+def test_clopper_pearson_matches_the_binomial_tails(coverage):
+    from scipy import stats
+
+    lo, hi = coverage.clopper_pearson(45, 50)
+    # the defining property: each end leaves 2.5 % in its tail
+    assert stats.binom.sf(44, 50, lo) == pytest.approx(0.025, rel=1e-6)
+    assert stats.binom.cdf(45, 50, hi) == pytest.approx(0.025, rel=1e-6)
+    assert coverage.clopper_pearson(0, 10)[0] == 0.0
+    assert coverage.clopper_pearson(10, 10)[1] == 1.0
