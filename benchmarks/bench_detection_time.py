@@ -1,0 +1,95 @@
+"""Benchmark: the time of a whole iterative diagnosis on the detection study's cases,
+each run alone on the machine, against issue #13's target (median <= 5 min on 2 cores).
+
+Run from the repository root, on an otherwise idle machine (nothing else running: the
+study's own times were taken two cases at a time, or beside other work, so they are
+not this number)::
+
+    .venv/bin/python benchmarks/bench_detection_time.py [--cases 9] [--seed 2026]
+
+A seeded random sample of the study's 100 cases (``studies/detection_power.py``, the
+same case list and the same call: ``jaxlift diagnose fit_1.csv fit_2.csv --validate
+validation.csv`` from nominal values, one process per case, iterating to the end) is
+diagnosed one case after the other; the logs are generated first (not timed) into
+``runs/detection/data`` if they are not there. Prints each case's wall time and
+verdict, the study's recorded time for the same case, and the median against the
+target; writes the same text to ``benchmarks/results_detection_time.txt``. There is no
+peer: the target is absolute.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import pathlib
+import platform
+import statistics
+import sys
+import tempfile
+
+import numpy as np
+
+HERE = pathlib.Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(ROOT / "studies"))
+import detection_generator as gen  # noqa: E402
+import detection_power as study  # noqa: E402
+
+RESULTS = HERE / "results_detection_time.txt"
+TARGET_S = 300.0
+
+_lines: list[str] = []
+
+
+def say(text: str = "") -> None:
+    print(text, flush=True)
+    _lines.append(text)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", type=int, default=9, help="how many of the study's cases")
+    ap.add_argument("--seed", type=int, default=2026, help="seed of the sample")
+    ap.add_argument("--data", default=str(ROOT / "runs" / "detection" / "data"))
+    args = ap.parse_args(argv)
+    specs = gen.make_cases(seed=0)  # the study's list (studies/detection_power.py)
+    rng = np.random.default_rng(args.seed)
+    picked = sorted(rng.choice(len(specs), size=args.cases, replace=False).tolist())
+    say(f"jaxlift detection-time benchmark -- {datetime.datetime.now():%Y-%m-%d %H:%M}")
+    say(f"python {platform.python_version()}; {os.cpu_count()} CPU cores; "
+        f"load average at start {os.getloadavg()}")  # fmt: skip
+    say(f"cases (seed {args.seed}): {', '.join(specs[i]['case_id'] for i in picked)}")
+    data = pathlib.Path(args.data)
+    for i in picked:  # generation is not part of the diagnosis: done first, not timed
+        gen.write_case(specs[i], data, verbose=False)
+    kept = ROOT / study.RESULTS
+    say("")
+    say("| case | hidden | verdict | study's verdict | wall [s] | study's wall [s] |")
+    say("|---|---|---|---|---:|---:|")
+    walls = []
+    with tempfile.TemporaryDirectory() as out:
+        for i in picked:
+            spec = specs[i]
+            r = study.run_case(spec, data, pathlib.Path(out))
+            before = kept / f"{spec['case_id']}.json"
+            old = json.loads(before.read_text()) if before.exists() else {}
+            walls.append(r["wall_s"])
+            say(
+                f"| {spec['case_id']} | {'+'.join(spec['hidden_effects']) or '-'} | "
+                f"{study.outcome(r)}: {'+'.join(r.get('found', [])) or r.get('final_verdict')} | "
+                f"{study.outcome(old) if old else '-'} | {r['wall_s']:.0f} | "
+                f"{old.get('wall_s', float('nan')):.0f} |"
+            )
+    med = statistics.median(walls)
+    say("")
+    say(f"median wall time per case: {med:.0f} s  target <= {TARGET_S:.0f} s  "
+        f"{'PASS' if med <= TARGET_S else 'MISS'}")  # fmt: skip
+    say(f"load average at end: {os.getloadavg()}  (> {os.cpu_count()}: shared machine, noisy)")
+    RESULTS.write_text("\n".join(_lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
