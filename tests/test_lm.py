@@ -202,3 +202,42 @@ def test_the_ridge_rule_needs_the_noise_floor_and_a_ridge():
         max_iter=2,
     )
     assert not out.converged and out.undetermined == []
+
+
+def _stiff_and_soft(seed: int):
+    """Linear least squares with one parameter determined 300x better than the others
+    and a small residual jitter that jumps when ``theta`` moves (as an adaptive
+    integrator's does: ~0.1 chi2 units here), started from the truth, which is up to
+    2.5 standard errors from the optimum in the weak directions."""
+    n = 4000
+    rng = np.random.default_rng(seed)
+    X = rng.standard_normal((n, 3))
+    X[:, 0] *= 300.0
+    X[:, 2] = 0.3 * X[:, 2] + 0.05 * X[:, 1]
+    noise = rng.standard_normal(n)
+    truth = np.array([0.2, -0.3, 0.5])
+
+    def res(th):
+        cell = np.abs(np.floor(th * 1e7).astype(np.int64)) % (2**31)
+        return X @ (th - truth) + noise + 1e-3 * np.random.default_rng(cell).standard_normal(n)
+
+    optimum = truth + np.linalg.lstsq(X, -noise, rcond=None)[0]
+    se = np.sqrt(np.diag(np.linalg.inv(X.T @ X)))
+    return res, (lambda th: (res(th), X)), truth, optimum, se
+
+
+def test_a_stalled_damping_is_bypassed_by_gauss_newton_steps():
+    """Started near the optimum in the well-determined direction, every damped step is
+    swamped by the jitter and rejected, and the isotropic damping grows until it stalls
+    where it started in the weak directions (found on a coverage case refitted from its
+    truth). The undamped Gauss--Newton step along the determined directions still
+    lowers chi2: with it the fit reaches the optimum."""
+    worst_stalled = 0.0
+    for seed in range(1, 6):
+        res, jac, truth, optimum, se = _stiff_and_soft(seed)
+        stalled = levenberg_marquardt(res, jac, truth.copy(), noise_floor=1.5, max_rescues=0)
+        worst_stalled = max(worst_stalled, float(np.max(np.abs(stalled.theta - optimum) / se)))
+        out = levenberg_marquardt(res, jac, truth.copy(), noise_floor=1.5)
+        assert out.converged, (seed, out.message)
+        np.testing.assert_array_less(np.abs(out.theta - optimum) / se, 0.1)
+    assert worst_stalled > 0.7  # the problem does stall the damped steps alone
