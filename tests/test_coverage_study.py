@@ -64,3 +64,25 @@ def test_clopper_pearson_matches_the_binomial_tails(coverage):
     assert stats.binom.cdf(45, 50, hi) == pytest.approx(0.025, rel=1e-6)
     assert coverage.clopper_pearson(0, 10)[0] == 0.0
     assert coverage.clopper_pearson(10, 10)[1] == 1.0
+
+
+@pytest.mark.slow
+def test_stderr_montecarlo_runs_and_is_reproducible(capsys):
+    """studies/stderr_montecarlo.py (the Monte Carlo check of the standard errors quoted
+    in docs/statistics.md): a short run prints one row per parameter, and the same
+    seeds give the same numbers."""
+    spec = importlib.util.spec_from_file_location(
+        "stderr_montecarlo", ROOT / "studies" / "stderr_montecarlo.py"
+    )
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    tables = []
+    for _ in range(2):
+        assert mod.main(["own", "--draws", "2"]) == 0
+        out = capsys.readouterr().out
+        tables.append([ln for ln in out.splitlines() if ln.startswith("| ")])
+    assert tables[0] == tables[1]
+    rows = {ln.split("|")[1].strip(): ln for ln in tables[0][1:]}
+    assert set(rows) == {"beta", "cf_con", "d"}
+    for ln in rows.values():
+        assert "nan" not in ln and "/2 (expected" in ln
