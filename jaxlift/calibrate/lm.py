@@ -198,6 +198,25 @@ def levenberg_marquardt(
     As, gs, d, D2 = normal_equations(J, r, np.zeros(idx.size) if scaling == "marquardt" else None)
     if not (np.all(np.isfinite(As)) and np.all(np.isfinite(gs))):
         return done(False, "the Jacobian is not finite at the start")
+
+    def linearise(theta_new):
+        """The accepted-point state at ``theta_new``, or None where its Jacobian overflows.
+
+        Returns (theta, r, J, As, gs, d, D2, chi2, dec); the one place both kinds of step
+        (damped, and the Gauss--Newton bypass) accept a point.
+        """
+        nonlocal n_jac
+        r_new, J_new = (np.asarray(a) for a in jacobian(theta_new))
+        n_jac += 1
+        As_new, gs_new, d_new, D2_new = normal_equations(J_new, r_new, D2)
+        if not (np.all(np.isfinite(As_new)) and np.all(np.isfinite(gs_new))):
+            return None
+        chi2_new = float(r_new @ r_new)
+        return (
+            theta_new, r_new, J_new, As_new, gs_new, d_new, D2_new, chi2_new,
+            _gn_decrease(As_new, gs_new),
+        )  # fmt: skip
+
     lam, nu = 1e-3, 2.0
     rescues = 0
     dec = _gn_decrease(As, gs)
@@ -229,19 +248,13 @@ def levenberg_marquardt(
                     ok = np.isfinite(chi2_new) and chi2_new < min(chi2, max_chi2)
                     if ok and (best is None or chi2_new < best[0]):
                         best = (chi2_new, trial_theta)
-                if best is not None:
-                    r_acc, J_acc = (np.asarray(a) for a in jacobian(best[1]))
-                    n_jac += 1
-                    new = normal_equations(J_acc, r_acc, D2)
-                    if np.all(np.isfinite(new[0])) and np.all(np.isfinite(new[1])):
-                        theta, r, J = best[1], r_acc, J_acc
-                        n_iter += 1
-                        chi2 = float(r @ r)
-                        As, gs, d, D2 = new
-                        dec = _gn_decrease(As, gs)
-                        if callback is not None:
-                            callback(trial, chi2)
-                        continue
+                point = linearise(best[1]) if best is not None else None
+                if point is not None:
+                    theta, r, J, As, gs, d, D2, chi2, dec = point
+                    n_iter += 1
+                    if callback is not None:
+                        callback(trial, chi2)
+                    continue
             # at the optimum up to the integrator's noise, unless the Gauss--Newton
             # decrease is still large
             if dec <= 100 * gtol * s2:
@@ -261,18 +274,10 @@ def levenberg_marquardt(
         chi2_new = float(r_new @ r_new)
         ok = np.isfinite(chi2_new) and chi2_new < max_chi2 and pred > 0
         rho = (chi2 - chi2_new) / pred if ok else -np.inf
-        if rho > 1e-4:
-            r_acc, J_acc = jacobian(trial_theta)
-            r_acc, J_acc = np.asarray(r_acc), np.asarray(J_acc)
-            n_jac += 1
-            new = normal_equations(J_acc, r_acc, D2)
-            rho = rho if np.all(np.isfinite(new[0])) and np.all(np.isfinite(new[1])) else -1.0
-        if rho > 1e-4:
-            theta, r, J = trial_theta, r_acc, J_acc
+        point = linearise(trial_theta) if rho > 1e-4 else None
+        if point is not None:
+            theta, r, J, As, gs, d, D2, chi2, dec = point
             n_iter += 1
-            chi2 = float(r @ r)
-            As, gs, d, D2 = new
-            dec = _gn_decrease(As, gs)
             lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
         else:  # rejected (or the Jacobian there overflowed)
