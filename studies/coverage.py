@@ -206,13 +206,36 @@ def _arviz_figures(usable: list[dict], to: pathlib.Path) -> None:
         plt.close(fig)
 
 
-def report(out: pathlib.Path, to: pathlib.Path) -> str:
+def _load(outs: list[pathlib.Path]) -> list[dict]:
+    """The results of finished cases, from run folders (``case_*/result.json``) or from
+    folders of committed results (``case_*.json``); several sets (seeds) may be given.
+    Results without a ``seed`` are from the first set (17), run before it was recorded."""
     results = []
-    for p in sorted(out.glob("case_*/result.json")):
-        r = json.loads(p.read_text())
-        if "fit_chi2n" not in r:  # cases run before the study recorded it
-            r["fit_chi2n"] = _fit_chi2n(p.parent, r["steps"].get("fit", {}).get("tail", ""))
-        results.append(r)
+    for out in outs:
+        paths = sorted(out.glob("case_*/result.json")) + sorted(out.glob("case_*.json"))
+        for p in paths:
+            r = json.loads(p.read_text())
+            r.setdefault("seed", SEED)
+            if "fit_chi2n" not in r:  # cases run before the study recorded it
+                r["fit_chi2n"] = _fit_chi2n(
+                    p.parent if p.name == "result.json" else p.with_suffix(""),
+                    r["steps"].get("fit", {}).get("tail", ""),
+                )
+            results.append(r)
+    if len({(r["seed"], r["case_id"]) for r in results}) < len(results):
+        raise ValueError(f"the same case appears twice in {[str(o) for o in outs]}")
+    return results
+
+
+def report(out: pathlib.Path | list[pathlib.Path], to: pathlib.Path) -> str:
+    """Write the coverage table, PIT figures and per-case list of the finished cases in
+    ``out`` (one folder or several: sets of cases with different seeds are pooled, and
+    each set's rates are listed as well) to ``to``; return the Markdown."""
+    results = _load([out] if isinstance(out, pathlib.Path) else list(out))
+    seeds = sorted({r["seed"] for r in results})
+    if len(seeds) > 1:
+        for r in results:
+            r["case_id"] = f"{r['seed']}/{r['case_id']}"
     usable = [r for r in results if r.get("targets") and r.get("converged")]
     to.mkdir(parents=True, exist_ok=True)
     rows = _rates(usable)
@@ -247,6 +270,7 @@ def report(out: pathlib.Path, to: pathlib.Path) -> str:
         "",
         *_table(rows),
         "",
+        *_per_set(usable, seeds),
         "![PIT histograms](pit.png)",
         "",
         "The same PIT values through ArviZ's calibration plot (`plot_ecdf_pit`): the "
@@ -296,6 +320,17 @@ def report(out: pathlib.Path, to: pathlib.Path) -> str:
     return "\n".join(lines)
 
 
+def _per_set(usable: list[dict], seeds: list[int]) -> list[str]:
+    """With several sets of cases (seeds), each set's rates: a table per set."""
+    if len(seeds) < 2:
+        return []
+    lines = ["Each set of cases on its own (the table above pools them):", ""]
+    for seed in seeds:
+        rs = [r for r in usable if r["seed"] == seed]
+        lines += [f"Set {seed} ({len(rs)} cases):", "", *_table(_rates(rs)), ""]
+    return lines
+
+
 def _why_out(result: dict) -> str:
     """Why a case is left out of the rates: the chain did not converge, or the step
     that failed and the last line it printed."""
@@ -319,13 +354,18 @@ def main(argv=None) -> int:
     r.add_argument("--conditional", action="store_true", help="the conditional posterior")
     r.add_argument("--seed", type=int, default=SEED, help="the set of cases (17: the first)")
     q = sub.add_parser("report")
-    q.add_argument("--out", default="runs/coverage")
+    q.add_argument(
+        "--out",
+        nargs="+",
+        default=["runs/coverage"],
+        help="run folders, or folders of committed case_*.json; several sets are pooled",
+    )
     q.add_argument("--to", default="studies/results/coverage")
     args = ap.parse_args(argv)
-    out = pathlib.Path(args.out)
     if args.cmd == "report":
-        print(report(out, pathlib.Path(args.to)))
+        print(report([pathlib.Path(o) for o in args.out], pathlib.Path(args.to)))
         return 0
+    out = pathlib.Path(args.out)
     specs = cases(args.seed)
     if args.only:
         specs = [s for s in specs if s["case_id"] == args.only]

@@ -23,15 +23,27 @@ def coverage():
     return mod
 
 
-def _case(out: pathlib.Path, cid: str, pits: list[float], converged: bool = True) -> None:
+def _case(
+    out: pathlib.Path,
+    cid: str,
+    pits: list[float],
+    converged: bool = True,
+    seed: int | None = None,
+    committed: bool = False,
+) -> None:
+    """One finished case: in a run folder (``cid/result.json``), or as committed
+    (``cid.json``); without ``seed`` like the first set's results, which lack it."""
     targets = {}
     for k, pit in zip(("beta", "cf_con", "d", "cf_out*cf_in^5"), pits, strict=True):
         targets[k] = {"truth": 1.0, "pit": pit, "in_50": 0.25 <= pit <= 0.75,
                       "in_90": 0.05 <= pit <= 0.95}  # fmt: skip
     result = {"case_id": cid, "kind": "null", "hidden_effects": [], "steps": {},
               "fit_chi2n": {"fit_1": 1.0}, "converged": converged, "targets": targets}  # fmt: skip
-    (out / cid).mkdir(parents=True)
-    (out / cid / "result.json").write_text(json.dumps(result))
+    if seed is not None:
+        result["seed"] = seed
+    path = out / f"{cid}.json" if committed else out / cid / "result.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result))
 
 
 def test_report_counts_the_intervals_that_contain_the_truth(coverage, tmp_path):
@@ -53,6 +65,28 @@ def test_report_counts_the_intervals_that_contain_the_truth(coverage, tmp_path):
     assert "case_003 (null): the chain did not reach 50 tau" in text
     for png in ("pit.png", "pit_ecdf.png", "coverage_ecdf.png"):
         assert (to / png).stat().st_size > 5_000
+
+
+def test_report_pools_sets_and_lists_each(coverage, tmp_path):
+    """Two sets (seeds) with the same case ids, one committed and one in a run folder:
+    the rates pool all cases, each set's own rates are listed, and a case given twice
+    is an error rather than counted twice."""
+    first, second, to = tmp_path / "cases", tmp_path / "runs", tmp_path / "report"
+    _case(first, "case_000", [0.5, 0.5, 0.5, 0.5], committed=True)  # seed 17 by default
+    _case(first, "case_001", [0.9, 0.5, 0.5, 0.5], committed=True)
+    _case(second, "case_000", [0.1, 0.5, 0.99, 0.5], seed=18)
+    text = coverage.report([first, second], to)
+    with open(to / "coverage.csv", encoding="utf-8") as fh:
+        rows = {r["parameter"]: r for r in csv.DictReader(fh)}
+    # beta: PIT 0.5, 0.9, 0.1 -> 50 %: 1 of 3; d: 0.5, 0.5, 0.99 -> 90 %: 2 of 3
+    assert rows["beta"]["n"] == "3"
+    assert float(rows["beta"]["cover_50"]) == pytest.approx(1 / 3)
+    assert float(rows["d"]["cover_90"]) == pytest.approx(2 / 3)
+    assert "Set 17 (2 cases):" in text and "Set 18 (1 cases):" in text
+    assert "| 18/case_000 |" in text and "| 17/case_001 |" in text
+    _case(tmp_path / "again", "case_000", [0.5] * 4, seed=18)
+    with pytest.raises(ValueError, match="the same case appears twice"):
+        coverage.report([second, tmp_path / "again"], to)
 
 
 def test_clopper_pearson_matches_the_binomial_tails(coverage):
