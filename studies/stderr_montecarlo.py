@@ -9,7 +9,7 @@ within ±0.674 half of the time and within ±1.645 in 90 %.
 Two designs::
 
     python studies/stderr_montecarlo.py own [--draws 30]
-    python studies/stderr_montecarlo.py generator case_051 [--draws 40] [--data DIR]
+    python studies/stderr_montecarlo.py generator case_051 [--draws 40] [--data DIR] [--seed 17]
 
 - ``own``: jaxlift's own model is the generator: two thesis-like logs (300 and
   1 200 kg) at a truth away from nominal, the measurement model's noise (seeds
@@ -67,9 +67,10 @@ def _own_draws(n_draws: int):
         ]
 
 
-def _generator_case(case: str, data: pathlib.Path):
+def _generator_case(case: str, data: pathlib.Path, seed: int):
     """The case's truth and its two fitted logs with the generator's noise-free
-    height and speed (rtol 1e-10); the data are made first if they are not there."""
+    height and speed (rtol 1e-10); the data are made first (from set ``seed`` of the
+    coverage study) if they are not there, and data of another set are refused."""
     import coverage as cov
     import detection_generator as gen
 
@@ -77,11 +78,13 @@ def _generator_case(case: str, data: pathlib.Path):
 
     folder = data / case
     if not (folder / "truth.json").exists():
-        spec = next((c for c in cov.cases() if c["case_id"] == case), None)
+        spec = next((c for c in cov.cases(seed) if c["case_id"] == case), None)
         if spec is None:
             raise SystemExit(f"{case}: not a case of studies/coverage.py")
         gen.write_case(spec, data, verbose=False)
     truth = json.loads((folder / "truth.json").read_text())
+    if truth.get("seed", cov.SEED) != seed:
+        raise SystemExit(f"{folder}: data of set {truth.get('seed')}, not {seed} (--seed)")
     if truth.get("hidden_effects"):
         raise SystemExit(f"{case}: has a hidden effect; this check fits the baseline only")
     P = truth["params"]
@@ -149,11 +152,12 @@ def main(argv=None) -> int:
     g.add_argument("case")
     g.add_argument("--draws", type=int, default=40)
     g.add_argument("--data", default=str(HERE.parent / "runs" / "coverage" / "data"))
+    g.add_argument("--seed", type=int, default=17, help="the coverage study's set of cases")
     args = ap.parse_args(argv)
     if args.design == "own":
         truth, draws = OWN_TRUTH, _own_draws(args.draws)
     else:
-        truth, clean = _generator_case(args.case, pathlib.Path(args.data))
+        truth, clean = _generator_case(args.case, pathlib.Path(args.data), args.seed)
         draws = _generator_draws(clean, args.draws)
     print(run(draws, truth, args.draws))
     return 0
