@@ -63,3 +63,13 @@ def test_with_params_rejects_unknown_names():
         jl.with_params(jl.Plant(), (), {"dFs": 1.0})
     with pytest.raises(ValueError, match="C_l"):
         jl.make_effects("leakage", {"C_l": 1e-12})
+
+
+def test_fit_stage_of_an_effect_parameter():
+    """An effect parameter may name the stage of a staged fit it joins; motor droop's
+    kappa joins the motor set (tests/test_fit.py shows why); a bad stage is refused."""
+    stages = {n: i.stage for e in jl.EFFECTS.values() for n, i in e.param_infos().items()}
+    assert stages.pop("kappa") == "motor"
+    assert set(stages.values()) == {None}
+    with pytest.raises(jl.ParameterError, match="'kappa'.*stage"):
+        jl.ParamInfo("kappa", "-", 0.0, 0.0, 1.0, "x", stage="motors")

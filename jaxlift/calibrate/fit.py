@@ -181,7 +181,9 @@ def fit(
             name (e.g. a previous fit's :attr:`FitResult.x0_offsets`, for a warm
             start); others 0.
         staged: fit the motor set first, then the dynamic set, then all of ``free``
-            (thesis 2.3.2); each stage starts from the previous optimum.
+            (thesis 2.3.2); each stage starts from the previous optimum. An effect
+            parameter declared with ``stage="motor"`` or ``"dynamic"``
+            (:class:`~jaxlift.ParamInfo`; motor droop's ``kappa``) joins that stage.
         n_starts: starting points per stage (the first is the current estimate, the
             others a seeded Latin hypercube of a box around it); the best is kept.
             In a staged fit, each stage also starts from where every earlier stage
@@ -245,8 +247,13 @@ def fit(
     plant0, effs = with_params(Plant(), effs, dict(init or {}))
     free_all = resolve_free(free, effs)
     if staged:
-        motor = [n for n in PARAMETER_SETS["motor"] if n in free_all]
-        dyn = [n for n in PARAMETER_SETS["dynamic"] if n in free_all]
+        # each set with the effect parameters that declare it as their stage
+        infos = all_param_infos(effs)
+        motor, dyn = (
+            [n for n in PARAMETER_SETS[k] if n in free_all]
+            + [n for n in free_all if infos[n].stage == k]
+            for k in ("motor", "dynamic")
+        )
         stage_sets = [s for s in (motor, dyn, free_all) if s]
     else:
         stage_sets = [free_all]

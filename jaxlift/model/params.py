@@ -53,6 +53,12 @@ class ParamInfo:
             parameters), in ``unit``; the diagnosis's confirmation refits start from a
             grid over it. ``None`` where no such range is declared.
         typical_why: where the range comes from.
+        stage: for an effect parameter, the stage of a staged fit (``fit(staged=True)``)
+            that fits it beside the base model's set of that name: ``"motor"``
+            (k1...z3) or ``"dynamic"`` (beta ... d); ``None`` (default): only the last
+            stage, with everything else. A parameter that changes what the motor
+            stage fits (the motor's speed) belongs there: fitted without it, that stage
+            ends far from the truth and the later stages follow it (docs/model.md).
     """
 
     name: str
@@ -67,6 +73,7 @@ class ParamInfo:
     spread: float = 1.5
     typical: tuple[float, float] | None = None
     typical_why: str = ""
+    stage: str | None = None
 
     def __post_init__(self):
         if not self.transform:
@@ -87,6 +94,11 @@ class ParamInfo:
             raise ParameterError(
                 f"parameter {self.name!r}: typical range {self.typical} not inside its "
                 f"bounds [{self.lower}, {self.upper}]"
+            )
+        if self.stage not in (None, "motor", "dynamic"):
+            raise ParameterError(
+                f"parameter {self.name!r}: stage must be 'motor', 'dynamic' or None,"
+                f" got {self.stage!r}"
             )
         if not self.lower <= self.nominal <= self.upper:
             raise ParameterError(
@@ -124,6 +136,7 @@ def param(
     name: str | None = None,
     typical: tuple[float, float] | None = None,
     typical_why: str = "",
+    stage: str | None = None,
 ):
     """Declare a physical-parameter field of an ``eqx.Module``.
 
@@ -133,6 +146,7 @@ def param(
     info = dict(nominal=nominal, unit=unit, lower=lower, upper=upper)
     info.update(description=description, nesting=nesting, scale=scale, name=name)
     info.update(transform=transform, spread=spread, typical=typical, typical_why=typical_why)
+    info.update(stage=stage)
     return eqx.field(default=nominal, converter=_as_float64, metadata={"jaxlift_param": info})
 
 
@@ -162,6 +176,7 @@ def param_infos(module: eqx.Module | type) -> dict[str, ParamInfo]:
             spread=meta["spread"],
             typical=meta["typical"],
             typical_why=meta["typical_why"],
+            stage=meta["stage"],
         )
     return out
 

@@ -19,7 +19,12 @@ class MotorDroop(AbstractStatelessEffect):
         0.0, "rad/(s Pa)", 0.0, 1e-5, "motor speed droop per pressure", nesting=0.0, scale=3e-7,
         typical=(3e-8, 6e-7),
         typical_why="a series-wound motor slowing by 2-30 % of its ~18 rad/s at 10 MPa",
+        stage="motor",
     )  # fmt: skip
+    # stage="motor": fitted with k1...z3. Without it the motor stage fits one speed to
+    # logs at different pressures, and on two mid-mast logs at 193 and 1 657 kg (an
+    # 8.3 % droop at 10 MPa; coverage set of seed 18, case_007) the later stages
+    # followed it to chi2/N 29 and 5.6 with cf_con at its bound; with it, 1.01 each.
 
     name: ClassVar[str] = "motor_droop"
 
