@@ -173,3 +173,15 @@ def test_motor_droop_from_nominal_on_mid_mast_logs_of_the_independent_generator(
     for name in ("kappa", "beta", "cf_con", "d"):
         p, t, se = res.params[name], truth["params"][name], res.stderr[name]
         assert abs(p - t) < 3 * se, (name, p, t, se)
+
+
+def test_misfit_hint_names_the_logs_and_parameters_at_bounds():
+    """``jaxlift fit`` prints a line when a converged fit stays above the sensor noise."""
+    from jaxlift.workflows.fit import misfit_hint
+
+    assert misfit_hint({"a": 1.02, "b": 1.49}, {"cf_in": "in a direction ..."}) is None
+    line = misfit_hint({"a": 29.4, "b": 1.2}, {"cf_con": "held at its upper bound 1e4 N"})
+    assert "a 29.4" in line and "b 1.2" not in line and "jaxlift diagnose" in line
+    assert "cf_con at a bound" in line and "--starts" in line
+    line = misfit_hint({"a": 2.0}, {"d": "relative standard error 60 % > 50 %"})
+    assert "a 2" in line and "at a bound" not in line

@@ -29,7 +29,7 @@ def cmd_simulate(args) -> int:
 
 def cmd_fit(args) -> int:
     import jaxlift as jl
-    from jaxlift.workflows.fit import run_fit
+    from jaxlift.workflows.fit import misfit_hint, run_fit
 
     fit_logs = read_logs(args.logs, args)
     val_logs = read_logs(args.validate or [], args)
@@ -69,6 +69,9 @@ def cmd_fit(args) -> int:
         )
     if result.undetermined:
         print(f"not determined by these data: {', '.join(result.undetermined)}")
+    hint = misfit_hint(result.chi2_per_log, result.undetermined) if result.converged else None
+    if hint:
+        print(hint)
     print(f"wrote {args.out}/params.json, metrics.json, report.md, report.html, figures/")
     return 0 if result.converged else 1
 

@@ -132,6 +132,34 @@ def _log_metrics(log: Log, sim: dict[str, np.ndarray] | None, failed: str | None
     return m
 
 
+#: chi2/N of a fitted log above which the fit's end is called out: 1.5 times what the
+#: sensor noise explains (the detection study's "baseline misfit" threshold).
+MISFIT_HINT_CHI2N = 1.5
+
+
+def misfit_hint(chi2_per_log: Mapping[str, float], undetermined: Mapping[str, str]) -> str | None:
+    """A line for the user when a fit converged but some fitted log stays well above the
+    sensor-noise floor (chi2/N >= :data:`MISFIT_HINT_CHI2N`): the model lacks an effect,
+    or the fit ended in a false minimum (a parameter at one of its bounds points there).
+    ``None`` when every fitted log is below the threshold."""
+    high = {k: v for k, v in chi2_per_log.items() if v >= MISFIT_HINT_CHI2N}
+    if not high:
+        return None
+    logs = ", ".join(f"{k} {v:.3g}" for k, v in high.items())
+    line = (
+        f"misfit above the sensor noise (chi2/N >= {MISFIT_HINT_CHI2N:g}: {logs}): the model"
+        " lacks an effect (`jaxlift diagnose` tests the candidates) or the fit ended in a"
+        " false minimum"
+    )
+    bound = [k for k, why in undetermined.items() if "bound" in why]
+    if bound:
+        line += (
+            f"; {', '.join(bound)} at a bound points to the second: try more starts"
+            " (--starts 8) or a start from an earlier calibration (--params)"
+        )
+    return line
+
+
 def run_fit(
     fit_logs: Sequence[Log],
     validate_logs: Sequence[Log] = (),
