@@ -117,6 +117,6 @@ def test_stderr_montecarlo_runs_and_is_reproducible(capsys):
         tables.append([ln for ln in out.splitlines() if ln.startswith("| ")])
     assert tables[0] == tables[1]
     rows = {ln.split("|")[1].strip(): ln for ln in tables[0][1:]}
-    assert set(rows) == {"beta", "cf_con", "d"}
+    assert set(rows) == {"beta", "cf_con", "d", "cf_out*cf_in^5"}
     for ln in rows.values():
         assert "nan" not in ln and "/2 (expected" in ln
