@@ -58,7 +58,7 @@ class ParamInfo:
             (k1...z3) or ``"dynamic"`` (beta ... d); ``None`` (default): only the last
             stage, with everything else. A parameter that changes what the motor
             stage fits (the motor's speed) belongs there: fitted without it, that stage
-            ends far from the truth and the later stages follow it (docs/model.md).
+            ends far from the truth and the later stages follow it (docs/statistics.md).
     """
 
     name: str
