@@ -26,8 +26,9 @@ between the generator and jaxlift's model.
 
 Measured 2026-11-27 on aee1587 (``own`` 30 draws, ``generator case_051`` 40 draws), and
 on ff3b15a (``generator case_011 --seed 18``, 40 draws, with the product and the
-noise-free fit): the numbers quoted in docs/statistics.md. Fits from the truth need aee1587's loop: before
-it, the damping stalled there and left ``cf_con`` and ``d`` at the truth.
+noise-free fit): the numbers quoted in docs/statistics.md. Fits from the truth need
+aee1587's loop: before it, the damping stalled there and left ``cf_con`` and ``d`` at
+the truth.
 """
 
 from __future__ import annotations

@@ -246,12 +246,12 @@ def fit(
     effs = make_effects(effects)
     plant0, effs = with_params(Plant(), effs, dict(init or {}))
     free_all = resolve_free(free, effs)
+    infos_all = all_param_infos(effs)
     if staged:
         # each set with the effect parameters that declare it as their stage
-        infos = all_param_infos(effs)
         motor, dyn = (
             [n for n in PARAMETER_SETS[k] if n in free_all]
-            + [n for n in free_all if infos[n].stage == k]
+            + [n for n in free_all if infos_all[n].stage == k]
             for k in ("motor", "dynamic")
         )
         stage_sets = [s for s in (motor, dyn, free_all) if s]
@@ -269,7 +269,6 @@ def fit(
 
     values = {k: float(v) for k, v in model_params(plant0, effs).items()}
     initial = dict(values)
-    infos_all = all_param_infos(effs)
     stages: list[StageResult] = []
     # initial-height offsets [mm], estimated with the rest
     x0_mm = np.array([1e3 * (x0_offsets or {}).get(e.name, 0.0) for e in experiments])
