@@ -188,6 +188,21 @@ def evaluate(case: dict, diag_dir: pathlib.Path) -> dict:
     return out
 
 
+def _commit() -> str:
+    """The commit the study runs on (short hash; ``+dirty`` with uncommitted changes)."""
+
+    def git(*args: str) -> str:
+        cmd = ["git", "-C", str(ROOT), *args]
+        return subprocess.run(cmd, capture_output=True, text=True, check=True).stdout.strip()
+
+    try:
+        head = git("rev-parse", "--short", "HEAD")
+        dirty = git("status", "--porcelain", "--", "jaxlift")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+dirty" if dirty else "")
+
+
 def run_case(case: dict, out: pathlib.Path, time_limit: float) -> dict:
     case_dir = out / case["case_id"]
     if (case_dir / "result.json").exists():
@@ -205,7 +220,7 @@ def run_case(case: dict, out: pathlib.Path, time_limit: float) -> dict:
         rc, tail = None, f"stopped at the study's limit of {time_limit:.0f} s"
     res = {"case_id": case["case_id"], "law": case["law"], "size": case["size"],
            "beside": case["beside"], "exit_code": rc,
-           "wall_s": time.perf_counter() - t0}  # fmt: skip
+           "wall_s": time.perf_counter() - t0, "commit": _commit()}  # fmt: skip
     if rc == 0:
         res.update(evaluate(case, case_dir / "diagnosis"))
     else:
@@ -264,8 +279,8 @@ def cmd_report(args) -> int:
     lines = ["# Laws outside the eight: diagnosis and shape", "",
              f"{len(results)} of {len(cases())} cases done.", "",
              "| case | law | size | beside | baseline chi2/N | final verdict | found | "
-             "dominant | correlation | leading term | right | time [s] |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+             "dominant | correlation | leading term | right | time [s] | commit |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for r in results:
         lead = r.get("law_leading") or (r.get("leading") or {}).get(
             r.get("signal") or r.get("dominant") or "", ""
@@ -277,7 +292,7 @@ def cmd_report(args) -> int:
             f" | {r.get('baseline_chi2n', float('nan')):.3g} | {r.get('final_verdict', 'crash')}"
             f" | {', '.join(r.get('found', [])) or '—'} | {r.get('dominant', '')}"
             f" | {r.get('correlation', float('nan')):.3f} | {lead}"
-            f" | {_right(r)} | {r['wall_s']:.0f} |"
+            f" | {_right(r)} | {r['wall_s']:.0f} | {r.get('commit', 'not recorded')} |"
         )
     laws = [r for r in results if r["law"]]
     nulls = [r for r in results if not r["law"]]
