@@ -39,6 +39,9 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 import outside_laws  # noqa: E402
 
+sys.path.insert(0, str(ROOT / "studies"))
+from detection_power import _jaxlift_commit  # noqa: E402  (the commit of the jaxlift the cases import)
+
 import jaxlift as jl  # noqa: E402
 from jaxlift.model.sequences import ramped_sequence  # noqa: E402
 
@@ -188,21 +191,6 @@ def evaluate(case: dict, diag_dir: pathlib.Path) -> dict:
     return out
 
 
-def _commit() -> str:
-    """The commit the study runs on (short hash; ``+dirty`` with uncommitted changes)."""
-
-    def git(*args: str) -> str:
-        cmd = ["git", "-C", str(ROOT), *args]
-        return subprocess.run(cmd, capture_output=True, text=True, check=True).stdout.strip()
-
-    try:
-        head = git("rev-parse", "--short", "HEAD")
-        dirty = git("status", "--porcelain", "--", "jaxlift")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-    return head + ("+dirty" if dirty else "")
-
-
 def run_case(case: dict, out: pathlib.Path, time_limit: float) -> dict:
     case_dir = out / case["case_id"]
     if (case_dir / "result.json").exists():
@@ -220,7 +208,7 @@ def run_case(case: dict, out: pathlib.Path, time_limit: float) -> dict:
         rc, tail = None, f"stopped at the study's limit of {time_limit:.0f} s"
     res = {"case_id": case["case_id"], "law": case["law"], "size": case["size"],
            "beside": case["beside"], "exit_code": rc,
-           "wall_s": time.perf_counter() - t0, "commit": _commit()}  # fmt: skip
+           "wall_s": time.perf_counter() - t0, "commit": _jaxlift_commit()}  # fmt: skip
     if rc == 0:
         res.update(evaluate(case, case_dir / "diagnosis"))
     else:
