@@ -15,6 +15,14 @@ case whose ``result.json`` exists is not run again::
 
     python studies/outside_the_eight.py run --out runs/outside
     python studies/outside_the_eight.py report --out runs/outside --to studies/results/outside
+
+After a change of the shape estimate alone (``jaxlift/calibrate/shape.py``), ``reshape``
+estimates the shape again on each finished case's final model, as its diagnosis left it
+(the final parameters and effects from ``diagnosis.json``; each fitted log's
+initial-height offset estimated again under that model, the fit's nuisance parameter),
+into a copy of the run, and scores it the same way; the verdicts are the diagnosis's::
+
+    python studies/outside_the_eight.py reshape --out runs/outside --into runs/outside_reshaped
 """
 
 from __future__ import annotations
@@ -22,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import shutil
 import subprocess
 import sys
 import time
@@ -217,6 +226,51 @@ def run_case(case: dict, out: pathlib.Path, time_limit: float) -> dict:
     return res
 
 
+def reshape_case(case: dict, out: pathlib.Path, into: pathlib.Path) -> dict | None:
+    """The shape estimated again on the final model of a finished case of ``out``, into
+    ``into`` (see the module docstring); None if the case has not finished there."""
+    src = out / case["case_id"]
+    if not (src / "result.json").exists():
+        return None
+    dst = into / case["case_id"]
+    if (dst / "result.json").exists():
+        return json.loads((dst / "result.json").read_text())
+    from jaxlift.calibrate.fit import estimate_x0_offsets
+    from jaxlift.calibrate.shape import estimate_missing_shape
+    from jaxlift.report.document import Report, json_safe
+    from jaxlift.report.shape import shape_section, write_shape_csv
+
+    res = json.loads((src / "result.json").read_text())
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(src, dst)
+    (dst / "result.json").unlink()
+    if res.get("exit_code") == 0:
+        diag = dst / "diagnosis"
+        d = json.loads((diag / "diagnosis.json").read_text())
+        logs = [jl.read_log(dst / f"{n}.csv") for n in ("fit_1", "fit_2")]
+        params, effects = d["final_params"], d["final_effects"]
+        final = jl.FitResult.__new__(jl.FitResult)  # only the model and offsets are read
+        final.model = jl.Model.build(effects, params)
+        final.effects = list(effects)
+        final.x0_offsets = estimate_x0_offsets(params, effects, logs)
+        t0 = time.perf_counter()
+        try:
+            est = estimate_missing_shape(final, logs)
+        except jl.SimulationError as err:
+            d["missing_shape"] = {"failed": str(err)}
+        else:
+            rep = Report("shape only")
+            d["missing_shape"] = shape_section(rep, est, diag / "figures")
+            write_shape_csv(est, diag / "missing_shape.csv")
+        (diag / "diagnosis.json").write_text(json.dumps(json_safe(d), indent=2))
+        res = {k: v for k, v in res.items() if k not in ("correlation", "signal", "term_named")}
+        res.update(evaluate(case, diag))
+        res.update(shape_commit=_jaxlift_commit(), shape_wall_s=time.perf_counter() - t0)
+    (dst / "result.json").write_text(json.dumps(res, indent=1, default=float))
+    return res
+
+
 def correct(r: dict) -> bool:
     """Right: ``unexplained`` for a law (alone, or with its companion found too);
     ``none`` (or the companion alone) for a null case."""
@@ -250,6 +304,18 @@ def cmd_run(args) -> int:
     return 0
 
 
+def cmd_reshape(args) -> int:
+    out, into = pathlib.Path(args.out), pathlib.Path(args.into)
+    for case in cases():
+        if args.only and case["case_id"] not in args.only:
+            continue
+        r = reshape_case(case, out, into)
+        if r is not None:
+            print(case["case_id"], case["law"], r.get("correlation"),
+                  f"{r.get('shape_wall_s', 0.0):.0f} s", flush=True)  # fmt: skip
+    return 0
+
+
 def cmd_report(args) -> int:
     out = pathlib.Path(args.out)
     to = pathlib.Path(args.to)
@@ -280,7 +346,9 @@ def cmd_report(args) -> int:
             f" | {r.get('baseline_chi2n', float('nan')):.3g} | {r.get('final_verdict', 'crash')}"
             f" | {', '.join(r.get('found', [])) or '—'} | {r.get('dominant', '')}"
             f" | {r.get('correlation', float('nan')):.3f} | {lead}"
-            f" | {_right(r)} | {r['wall_s']:.0f} | {r.get('commit', 'not recorded')} |"
+            f" | {_right(r)} | {r['wall_s']:.0f} | {r.get('commit', 'not recorded')}"
+            + (f" (shape: {r['shape_commit']})" if "shape_commit" in r else "")
+            + " |"
         )
     laws = [r for r in results if r["law"]]
     nulls = [r for r in results if not r["law"]]
@@ -309,6 +377,11 @@ def main(argv=None) -> int:
     r.add_argument("--only", nargs="*", default=[])
     r.add_argument("--time-limit", type=float, default=1800.0)
     r.set_defaults(func=cmd_run)
+    s = sub.add_parser("reshape")
+    s.add_argument("--out", required=True)
+    s.add_argument("--into", required=True)
+    s.add_argument("--only", nargs="*", default=[])
+    s.set_defaults(func=cmd_reshape)
     q = sub.add_parser("report")
     q.add_argument("--out", required=True)
     q.add_argument("--to", required=True)

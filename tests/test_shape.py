@@ -4,6 +4,8 @@ synthetic logs -- a force law, a flow law and an input nonlinearity, none of the
 the eight -- against a target computed from the true and the fitted model's vector
 fields (not from the code under test)."""
 
+from typing import ClassVar
+
 import jax
 import numpy as np
 import pytest
@@ -38,10 +40,11 @@ SECTIONS = {
 }
 
 
-def _log(law, load, seed, x0, sections, name):
-    ts, pwm = ramped_sequence(SECTIONS[sections], ramp_s=0.5)
+def _log(law, load, seed, x0, sections, name, ramp_s=0.5):
+    ts, pwm = ramped_sequence(SECTIONS[sections], ramp_s=ramp_s)
     inputs = jl.Inputs.from_arrays(ts, pwm, np.full_like(ts, load), x0)
-    sol = jl.simulate(jl.Plant(), (law,), inputs, rtol=1e-8, atol=(1e-9, 1e-9, 1e-2))
+    effects = () if law is None else (law,)
+    sol = jl.simulate(jl.Plant(), effects, inputs, rtol=1e-8, atol=(1e-9, 1e-9, 1e-2))
     assert bool(sol.ok)
     log = jl.to_log(sol, inputs, jl.MeasurementModel(), jax.random.key(seed),
                     with_pressure=True, name=name)  # fmt: skip
@@ -51,6 +54,15 @@ def _log(law, load, seed, x0, sections, name):
 def _targets(law, result, shape_log, inputs):
     lg = shape_log
     return missing_targets(law, result.params, result.effects, inputs, lg.t, lg.x, lg.v, lg.p)
+
+
+def _truth() -> jl.FitResult:
+    """The nominal (true) model as a fit result: what the shape estimate and the targets
+    read of one (the model, parameters, effects and offsets)."""
+    truth = jl.FitResult.__new__(jl.FitResult)
+    truth.model, truth.effects, truth.x0_offsets = jl.Model.build(), [], {}
+    truth.params = {k: float(v) for k, v in truth.model.values().items()}
+    return truth
 
 
 # ---------------------------------------------------------------- sparse regression
@@ -120,12 +132,15 @@ def test_a_hidden_force_is_recovered_when_the_parameters_are_right():
     the noise."""
     law = SealFriction()
     made = [_log(law, m, s, 0.3, "steps", f"seal_{m:.0f}") for m, s in ((400.0, 1), (1400.0, 2))]
-    truth = jl.FitResult.__new__(jl.FitResult)  # only the model and offsets are read
-    truth.model, truth.effects, truth.x0_offsets = jl.Model.build(), [], {}
+    truth = _truth()
     shape = jl.estimate_missing_shape(truth, [lg for lg, _ in made])
     assert shape.needed == {"force": True, "flow": False}, (shape.evidence, shape.shares)
     assert shape.dominant == "force"
-    assert shape.shares["force"] > 0.9 and 0.0 <= shape.shares["flow"] < 0.1, shape.shares
+    # the flow alone explains part of it: with the jumps where the duty changes, a flow
+    # that steps as a lift starts imitates part of a friction that steps there
+    # (measured: share 0.29; 0.0 with a smooth flow alone). Its evidence is negative.
+    assert shape.shares["force"] > 0.9 and 0.0 <= shape.shares["flow"] < 0.5, shape.shares
+    assert shape.evidence["flow"] < 0.0, shape.evidence
     for lg in shape.logs:
         hidden = -law.mu * lg.p * np.tanh(lg.v / 1e-3)
         assert np.corrcoef(hidden, lg.force)[0, 1] >= 0.9
@@ -136,6 +151,64 @@ def test_a_hidden_force_is_recovered_when_the_parameters_are_right():
     assert laws["force"].coefs["p sign(v)"] == pytest.approx(-law.mu, rel=0.15)
     table = shape.table()
     assert list(table.index) == ["force", "flow"] and "p sign(v)" in shape._repr_html_()
+
+
+class DutyFlowLoss(jl.AbstractStatelessEffect):
+    """A flow lost in proportion to the duty (a pump law the model has wrong): a missing
+    flow that steps when the duty does."""
+
+    k: float = 3e-6  # m^3/s per unit duty (~3 % of the pump's flow)
+    name: ClassVar[str] = "test_duty_flow_loss"
+
+    def extra_flow(self, plant, z, sig):
+        return -self.k * sig.u
+
+
+def test_a_missing_flow_that_steps_with_the_duty_is_followed_by_the_jumps(monkeypatch):
+    """The duty steps (20 ms ramps) and the missing flow with it. The marginal
+    likelihood turns the jumps on (a smooth flow alone cannot step), and the estimate
+    follows the steps: correlation >= 0.99 and an RMS error less than half of the
+    estimate without jumps (measured: 0.999 and 2.6e-8 m^3/s with jumps; 0.949 and
+    2.0e-7 without). Only the flow is needed."""
+    from jaxlift.calibrate import shape as shape_mod
+
+    law = DutyFlowLoss()
+    made = [_log(law, 400.0, 1, 0.3, "thesis-like", "duty_loss_a", ramp_s=0.02),
+            _log(law, 1400.0, 2, 0.0, "steps", "duty_loss_b", ramp_s=0.02)]  # fmt: skip
+    truth = _truth()
+
+    def errors(shape):
+        err, tgt, est = [], [], []
+        for lg, (_, inputs) in zip(shape.logs, made):
+            _, Q = _targets(law, truth, lg, inputs)
+            err.append(lg.flow - Q)
+            tgt.append(Q)
+            est.append(lg.flow)
+            assert lg.chi2n_before > 10.0 and lg.chi2n_after < 1.1
+        corr = np.corrcoef(np.concatenate(tgt), np.concatenate(est))[0, 1]
+        return corr, np.sqrt(np.mean(np.concatenate(err) ** 2))
+
+    shape = jl.estimate_missing_shape(truth, [lg for lg, _ in made])
+    assert np.isfinite(shape.log10_q_jump), shape.log10_q_jump
+    assert shape.needed == {"force": False, "flow": True}, (shape.evidence, shape.shares)
+    corr, rms = errors(shape)
+    monkeypatch.setattr(shape_mod, "LOG10_QJ_GRID", np.array([]))  # no jumps
+    smooth = jl.estimate_missing_shape(truth, [lg for lg, _ in made])
+    assert smooth.log10_q_jump == -np.inf
+    corr_smooth, rms_smooth = errors(smooth)
+    assert corr >= 0.99 and rms < 0.5 * rms_smooth, (corr, rms, corr_smooth, rms_smooth)
+
+
+def test_nothing_missing_needs_no_signal_and_no_jumps():
+    """The true model, nothing hidden: neither signal is needed, no jumps are chosen,
+    and the fit stays at the noise."""
+    made = [_log(None, 400.0, 1, 0.3, "thesis-like", "null_a"),
+            _log(None, 1400.0, 2, 0.0, "steps", "null_b")]  # fmt: skip
+    shape = jl.estimate_missing_shape(_truth(), [lg for lg, _ in made])
+    assert shape.needed == {"force": False, "flow": False}, (shape.evidence, shape.shares)
+    assert shape.log10_q_jump == -np.inf
+    for lg in shape.logs:
+        assert lg.chi2n_before < 1.1 and abs(lg.chi2n_after - lg.chi2n_before) < 0.05
 
 
 def test_damped_passes_move_a_log_whose_gauss_newton_steps_are_all_rejected(monkeypatch):
@@ -160,8 +233,7 @@ def test_damped_passes_move_a_log_whose_gauss_newton_steps_are_all_rejected(monk
     monkeypatch.setattr(shape_mod, "_smooth", reversed_step)
     law = SealFriction()
     made = [_log(law, 400.0, 1, 0.3, "steps", "seal_damped")]
-    truth = jl.FitResult.__new__(jl.FitResult)
-    truth.model, truth.effects, truth.x0_offsets = jl.Model.build(), [], {}
+    truth = _truth()
     (lg,) = jl.estimate_missing_shape(truth, [made[0][0]]).logs
     assert lg.chi2n_before > 2.0 and lg.chi2n_after < 1.1, (lg.chi2n_before, lg.chi2n_after)
     hidden = -law.mu * lg.p * np.tanh(lg.v / 1e-3)
@@ -184,8 +256,7 @@ def test_without_a_pressure_sensor_a_signal_not_needed_is_held_at_zero():
     sol = jl.simulate(jl.Plant(), (law,), inputs, rtol=1e-8, atol=(1e-9, 1e-9, 1e-2))
     log = jl.to_log(sol, inputs, jl.MeasurementModel(), jax.random.key(2),
                     with_pressure=False, name="no_pressure")  # fmt: skip
-    truth = jl.FitResult.__new__(jl.FitResult)
-    truth.model, truth.effects, truth.x0_offsets = jl.Model.build(), [], {}
+    truth = _truth()
     shape = jl.estimate_missing_shape(truth, [log])
     (lg,) = shape.logs
     assert not shape.with_pressure

@@ -95,8 +95,15 @@ def shape_section(rep: Report, shape: MissingShape, figs: pathlib.Path) -> dict:
         "The model was given an unknown smooth force on the fork and an unknown smooth "
         "flow into the cylinder, per log, estimated with the fitted parameters held "
         "(iterated Kalman smoother; smoothness chosen by the marginal likelihood; "
-        "docs/statistics.md). Evidence = log-likelihood gain of each signal over a "
-        f"straight line in time (needed above {shape.EVIDENCE_THRESHOLD:g}). chi2/N "
+        "docs/statistics.md). Where the duty changes, both may also step: "
+        + (
+            "the marginal likelihood chose no steps"
+            if not np.isfinite(shape.log10_q_jump)
+            else f"the marginal likelihood chose steps of log10 q_J = {shape.log10_q_jump:.0f}"
+        )
+        + ". Evidence = log-likelihood gain of each signal over a "
+        f"straight line in time without steps (needed above {shape.EVIDENCE_THRESHOLD:g}). "
+        "chi2/N "
         "with the signals: "
         + ", ".join(
             f"`{lg.name}` {lg.chi2n_before:.3g} → {lg.chi2n_after:.3g}" for lg in shape.logs
