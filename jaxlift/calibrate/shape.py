@@ -694,10 +694,10 @@ def _choose_q(lps, pts, start):
 
 def _shares(lps, pts, log10_q) -> dict[str, float]:
     """The share of the misfit each signal explains alone (see :class:`MissingShape`)."""
-    # a signal switched off gets a roughness far below the grid's (a straight line in
-    # effect), not 0: with both signals exactly rigid the smoother's covariance is
-    # singular and its chi2 NaN (measured: a hidden drag, the flow's q chosen 0)
-    # (and no jumps)
+    # a signal switched off gets no jumps and a roughness far below the grid's (a
+    # straight line in effect), not 0: with both signals exactly rigid the smoother's
+    # covariance is singular and its chi2 NaN (measured: a hidden drag, the flow's q
+    # chosen 0)
     off = Q_OFF
     q = np.maximum(10.0 ** np.asarray(log10_q[:2], float), off)
     qj = 10.0 ** float(log10_q[2])
