@@ -667,10 +667,11 @@ def _choose_q(lps, pts, start):
         q = 10.0 ** np.atleast_2d(b)
         return np.concatenate([q, q[:, 2:]], axis=1)
 
+    args = [_args(lp, pt, np.ones(3)) for lp, pt in zip(lps, pts)]  # q replaced below
+
     def total(qs: np.ndarray) -> np.ndarray:
         acc = np.zeros(len(qs))
-        for lp, pt in zip(lps, pts):
-            a = _args(lp, pt, np.ones(3))
+        for a in args:
             acc += np.asarray(_loglik_batch(*a[:5], jnp.asarray(qs), *a[6:]))
         return acc
 
@@ -712,12 +713,10 @@ def _shares(lps, pts, log10_q) -> dict[str, float]:
     # smoother with both signals (nearly) rigid can also diverge numerically (measured:
     # chi2 1e63 with q = 1e-9 on a hidden drag): then the baseline's value stands.
     base = sum(float(np.sum(pt.resid**2)) for pt in pts)
+    args = [_args(lp, pt, np.ones(3)) for lp, pt in zip(lps, pts)]  # q replaced below
     chi2 = {}
     for name, qq in configs.items():
-        v = 0.0
-        for lp, pt in zip(lps, pts):
-            a = _args(lp, pt, np.ones(3))
-            v += float(_smooth(*a[:5], jnp.asarray(qq), *a[6:])[4])
+        v = sum(float(_smooth(*a[:5], jnp.asarray(qq), *a[6:])[4]) for a in args)
         chi2[name] = min(v, base) if np.isfinite(v) else base
     gain = chi2["none"] - chi2["both"]
     if gain <= 0:
