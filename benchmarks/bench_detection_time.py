@@ -5,7 +5,7 @@ Run from the repository root, on an otherwise idle machine (nothing else running
 study's own times were taken two cases at a time, or beside other work, so they are
 not this number)::
 
-    .venv/bin/python benchmarks/bench_detection_time.py [--cases 9] [--seed 2026]
+    .venv/bin/python benchmarks/bench_detection_time.py [--cases 9] [--seed 2026] [--stratified]
 
 A seeded random sample of the study's 100 cases (``studies/detection_power.py``, the
 same case list and the same call: ``jaxlift diagnose fit_1.csv fit_2.csv --validate
@@ -38,6 +38,7 @@ import detection_generator as gen  # noqa: E402
 import detection_power as study  # noqa: E402
 
 RESULTS = HERE / "results_detection_time.txt"
+RESULTS_STRATIFIED = HERE / "results_detection_time_stratified.txt"
 TARGET_S = 300.0
 
 _lines: list[str] = []
@@ -48,19 +49,48 @@ def say(text: str = "") -> None:
     _lines.append(text)
 
 
+def stratified_sample(specs: list[dict], n: int, rng: np.random.Generator) -> list[int]:
+    """``n`` case indices drawn without replacement within each kind (null, single,
+    pair: the number of hidden effects), as many of each kind as its share of the
+    study's list gives (largest remainders), so that the sample's median estimates
+    the study's (a simple random sample of 9 may hold 4 null cases of 9, where the
+    study has 24 of 100)."""
+    kinds: dict[int, list[int]] = {}
+    for i, spec in enumerate(specs):
+        kinds.setdefault(len(spec["hidden_effects"]), []).append(i)
+    exact = {k: n * len(v) / len(specs) for k, v in sorted(kinds.items())}
+    counts = {k: int(x) for k, x in exact.items()}
+    by_remainder = sorted(exact, key=lambda k: exact[k] - counts[k], reverse=True)
+    for k in by_remainder[: n - sum(counts.values())]:
+        counts[k] += 1
+    picked: list[int] = []
+    for k, members in sorted(kinds.items()):
+        picked += rng.choice(members, size=counts[k], replace=False).tolist()
+    return sorted(picked)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=9, help="how many of the study's cases")
     ap.add_argument("--seed", type=int, default=2026, help="seed of the sample")
     ap.add_argument("--data", default=str(ROOT / "runs" / "detection" / "data"))
+    ap.add_argument(
+        "--stratified",
+        action="store_true",
+        help="draw null, single and pair cases in the study's proportions",
+    )
     args = ap.parse_args(argv)
     specs = gen.make_cases(seed=0)  # the study's list (studies/detection_power.py)
     rng = np.random.default_rng(args.seed)
-    picked = sorted(rng.choice(len(specs), size=args.cases, replace=False).tolist())
+    if args.stratified:
+        picked = stratified_sample(specs, args.cases, rng)
+    else:
+        picked = sorted(rng.choice(len(specs), size=args.cases, replace=False).tolist())
     say(f"jaxlift detection-time benchmark -- {datetime.datetime.now():%Y-%m-%d %H:%M}")
     say(f"python {platform.python_version()}; {os.cpu_count()} CPU cores; "
         f"load average at start {os.getloadavg()}")  # fmt: skip
-    say(f"cases (seed {args.seed}): {', '.join(specs[i]['case_id'] for i in picked)}")
+    how = ", stratified by kind" if args.stratified else ""
+    say(f"cases (seed {args.seed}{how}): {', '.join(specs[i]['case_id'] for i in picked)}")
     data = pathlib.Path(args.data)
     for i in picked:  # generation is not part of the diagnosis: done first, not timed
         gen.write_case(specs[i], data, verbose=False)
@@ -87,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     say(f"median wall time per case: {med:.0f} s  target <= {TARGET_S:.0f} s  "
         f"{'PASS' if med <= TARGET_S else 'MISS'}")  # fmt: skip
     say(f"load average at end: {os.getloadavg()}  (> {os.cpu_count()}: shared machine, noisy)")
-    RESULTS.write_text("\n".join(_lines) + "\n")
+    (RESULTS_STRATIFIED if args.stratified else RESULTS).write_text("\n".join(_lines) + "\n")
     return 0
 
 
