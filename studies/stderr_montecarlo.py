@@ -148,7 +148,8 @@ def run(draws, truth: dict, n_draws: int, clean=None, effects: Sequence[str] = (
     on and their parameters fitted too (``free="all"``, as ``jaxlift fit --effects``)."""
     import jaxlift as jl
 
-    effect_params = list(jl.all_param_infos(list(effects))) if effects else []
+    # the effects' own parameters (all_param_infos would give the plant's too)
+    effect_params = [n for e in jl.make_effects(list(effects)) for n in type(e).param_infos()]
     init = {k: truth[k] for k in (*FREE, *effect_params)}
     kw = dict(effects=list(effects), free="all") if effects else {}
     truth = {**truth, "cf_out*cf_in^5": truth["cf_out"] * truth["cf_in"] ** 5}
