@@ -195,7 +195,7 @@ def main(argv=None) -> int:
     g.add_argument("--data", default=str(HERE.parent / "runs" / "coverage" / "data"))
     g.add_argument("--seed", type=int, default=17, help="the coverage study's set of cases")
     args = ap.parse_args(argv)
-    clean_logs = None
+    clean_logs, effects = None, ()
     if args.design == "own":
         truth, draws = OWN_TRUTH, _own_draws(args.draws)
     else:
