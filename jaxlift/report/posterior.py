@@ -20,7 +20,7 @@ from ..model.params import to_unconstrained
 from ..posterior.air import AIR_THRESHOLD, air_content, air_verdict, mean_working_pressure
 from ..posterior.pointwise import pointwise_groups
 from ..posterior.predictive import predictive
-from ..posterior.problem import NOISE_NAMES, PosteriorProblem
+from ..posterior.problem import NOISE_NAMES, NUISANCE_RCOND, PosteriorProblem
 from ..posterior.sampler import SamplerRun, posterior_samples
 from .document import Report
 from .figures import new_figure, with_pyplot_figures
@@ -289,6 +289,13 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
             "their uncertainty reaches the intervals. Fixed at the least-squares values: "
             "every other parameter not sampled."
         )
+        for direction in problem.ls_info.get("nuisance_directions_held", []):
+            mix = " against ".join(f"`{n}`" for n in direction["nuisances"])
+            held += (
+                f" Held: the direction of {mix}, which the logs barely determine (singular "
+                f"value {direction['singular_value']:.1e} of the largest; below "
+                f"{NUISANCE_RCOND:g} the linearised optimum is not trusted)."
+            )
     else:
         held = (
             "Fixed at the least-squares values (`--conditional`): all parameters not "
