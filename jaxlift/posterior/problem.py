@@ -81,7 +81,8 @@ INNOVATION_P_MIN = 0.01
 #: the friction product, where the motor set re-fitted by least squares does not move at
 #: all; the log-density along the product fell 15 at one standard error instead of 0.6
 #: (30x steeper than its Laplace curvature), and the sampled interval of the product was
-#: 0.56 of the fit's standard error (whose size 60 fresh noise draws confirmed). Cut at
+#: 0.56 of the fit's standard error (whose size the 25 fits of 60 fresh noise draws
+#: that left their start confirmed: studies/stderr_montecarlo.py). Cut at
 #: this fraction, the same log-density is quadratic (-0.58 at one, -2.1 at two standard
 #: errors), and every Laplace standard deviation moves by under 0.3 %. The smallest
 #: nonzero values kept on the shipped logs and five other coverage designs: 2.5e-3 to
