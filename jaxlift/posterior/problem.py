@@ -549,7 +549,9 @@ def _laplace(
         a_map = -((vt[keep].T / sv[keep]) @ (u[:, keep].T @ j_th)) / col[:, None]
         j_th = j_th + j_phi @ a_map
         for s_k, v_k in zip(sv[~keep], vt[~keep], strict=True):
-            if s_k > 0:  # which nuisances make up a dropped direction (largest weights)
+            # which nuisances make up a held direction (largest weights); not those at
+            # round-off (a stage no log lifts through), which no cut-off ever moved
+            if s_k > 1e-9 * sv[0]:
                 top = np.argsort(-np.abs(v_k))[:2]
                 dropped.append(
                     {"singular_value": float(s_k / sv[0]),
