@@ -184,9 +184,11 @@ def test_a_nuisance_direction_the_data_barely_determine_does_not_move(tmp_path):
              for c in ("marginal", "conditional")}  # fmt: skip
     marg = probs["marginal"]
     info = np.linalg.inv(marg.cov_theta)
-    for name in ("cf_out", "beta"):  # cf_out: the product, cf_in held
+    g = np.zeros(marg.ndim)  # log of the product cf_out * cf_in^5
+    g[marg.names.index("cf_out")], g[marg.names.index("cf_in")] = 1.0, 5.0
+    steps = {"cf_out": math.sqrt(g @ marg.cov_theta @ g), "beta": _sd(marg, "beta")}
+    for name, h in steps.items():  # cf_out by the product's sd: cf_in held
         k = marg.names.index(name)
-        h = _sd(marg, "beta") if name == "beta" else 0.00544  # the product's se (log)
         v = {}
         for c, problem in probs.items():
             th = np.repeat(problem.theta_opt[None], 3, axis=0)

@@ -467,11 +467,11 @@ def prepare_posterior(
         motor = []
         say("nuisances held at their least-squares values (conditional posterior)")
     say("Laplace covariance at the optimum (starts the walkers)")
-    problem.cov_theta, a_map, nuis, phi0, dropped = _laplace(
+    problem.cov_theta, a_map, nuis, phi0, held = _laplace(
         problem, motor, conditioning == "marginal"
     )
     problem.nuisance, problem.nuisance_map, problem.nuisance_opt = nuis, a_map, phi0
-    problem.ls_info["nuisance_directions_held"] = dropped
+    problem.ls_info["nuisance_directions_held"] = held
     problem.ls_info["marginal_sd"] = {
         n: float(math.sqrt(problem.cov_theta[k, k])) for k, n in enumerate(problem.names)
     }
@@ -501,7 +501,7 @@ def _laplace(
     ``J_phi`` with singular values above :data:`NUISANCE_RCOND` of the largest; the
     others do not move. A direction the data do not constrain (``cf_in`` against
     ``cf_out``) so starts at the prior's width. The noise factors start with a spread
-    of 2 %. Returns ``(cov_theta, A, nuisance names, nuisance optimum, dropped
+    of 2 %. Returns ``(cov_theta, A, nuisance names, nuisance optimum, held
     nuisance directions)``."""
     names = problem.names
     phys = [k for k, n in enumerate(names) if n not in NOISE_NAMES]
@@ -538,7 +538,7 @@ def _laplace(
     jac = np.where(np.isfinite(jac), jac, 0.0)
     j_th, j_phi = jac[:, :n_th], jac[:, n_th:]
     nuis = tuple(motor) + tuple(f"x0@{e.name}" for e in problem.experiments[:n_off])
-    dropped = []
+    held = []
     if j_phi.shape[1]:
         col = np.linalg.norm(j_phi, axis=0)
         col = np.where(col > 0, col, 1.0)
@@ -553,7 +553,7 @@ def _laplace(
             # round-off (a stage no log lifts through), which no cut-off ever moved
             if s_k > 1e-9 * sv[0]:
                 top = np.argsort(-np.abs(v_k))[:2]
-                dropped.append(
+                held.append(
                     {"singular_value": float(s_k / sv[0]),
                      "nuisances": {nuis[t]: float(v_k[t]) for t in top}}
                 )  # fmt: skip
@@ -572,7 +572,7 @@ def _laplace(
         if n in NOISE_NAMES:
             cov[j, :] = cov[:, j] = 0.0
             cov[j, j] = 0.02**2
-    return 0.5 * (cov + cov.T), a_map, nuis, phi0, dropped
+    return 0.5 * (cov + cov.T), a_map, nuis, phi0, held
 
 
 def problem_from_settings(settings: Mapping, logs: Sequence[Log]) -> PosteriorProblem:
