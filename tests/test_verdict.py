@@ -88,6 +88,8 @@ def test_every_effect_declares_the_range_a_vehicle_can_have():
         lo, hi = info.typical
         assert info.nesting < lo < hi <= info.upper, name
         assert hi / lo >= 10, name  # a range, not a point
+        # and the test run that shows it plainly (suggested when it is one test short)
+        assert len(cls.revealing_run) > 40, name
 
 
 @pytest.mark.parametrize("effect", list(jl.EFFECTS))
@@ -245,11 +247,16 @@ def test_lookahead_does_not_keep_a_stand_in(short_fit, monkeypatch):
     steps = dg.diagnose_iteratively(logs, base=dataclasses.replace(base, effects=[]))
     assert dg.final_verdict(steps) == "unexplained" and dg.found_effects(steps) == []
     assert any("provisionally" in r and "not kept" in r for r in steps[-1].reasons)
-    # without the lookahead, the same first step and no attempt
+    # the candidate one test short is not named, but the run that would show it is
+    run = jl.EFFECTS["mast_compliance"].revealing_run
+    suggested = [r for r in steps[-1].reasons if run in r]
+    assert len(suggested) == 1 and suggested[0].startswith("mast_compliance removes only 22.0%")
+    # without the lookahead, the same first step and no attempt; the run is suggested
     steps = dg.diagnose_iteratively(
         logs, base=dataclasses.replace(base, effects=[]), lookahead=False
     )
     assert dg.final_verdict(steps) == "unexplained" and steps[-1].lookahead == []
+    assert sum(run in r for r in steps[-1].reasons) == 1
 
 
 def test_lookahead_says_when_the_provisional_effect_is_dropped_again(short_fit, monkeypatch):

@@ -68,6 +68,10 @@ class AbstractEffect(eqx.Module):
     name: eqx.AbstractClassVar[str]
     state_names: eqx.AbstractClassVar[tuple[str, ...]]
     state_scales: eqx.AbstractClassVar[tuple[float, ...]]  # absolute-tolerance scales
+    #: a test run that shows the effect plainly, in a sentence a service engineer can
+    #: act on: the diagnosis suggests it when the effect removed a real part of the
+    #: error but was not kept (``unexplained``). Empty: no such run known.
+    revealing_run: ClassVar[str] = ""
 
     @abc.abstractmethod
     def initial_state(self, plant: Plant, sig: Signals) -> Vector:

@@ -34,6 +34,11 @@ class EntrainedAir(AbstractStatelessEffect):
     )  # fmt: skip
 
     name: ClassVar[str] = "entrained_air"
+    revealing_run: ClassVar[str] = (
+        "slow runs with a light and a heavy load: air softens the oil most at low "
+        "pressure, so the oscillation's frequency changes with the load more than the "
+        "oil alone explains"
+    )
 
     def extra_capacitance(self, plant, z, sig: Signals, volume):
         p_abs = jnp.maximum(sig.p + P_ATM, 0.1 * P_ATM)  # no gas law below vacuum

@@ -23,6 +23,10 @@ class HoseCompliance(AbstractStatelessEffect):
     )  # fmt: skip
 
     name: ClassVar[str] = "hose_compliance"
+    revealing_run: ClassVar[str] = (
+        "slow runs low and high on the mast: the hose's softness is the same at every "
+        "height, so it matters most where the oil column is short"
+    )
 
     def extra_capacitance(self, plant, z, sig: Signals, volume):
         return self.C_h

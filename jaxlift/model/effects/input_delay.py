@@ -26,6 +26,10 @@ class InputDelay(AbstractStatelessEffect):
     )  # fmt: skip
 
     name: ClassVar[str] = "input_delay"
+    revealing_run: ClassVar[str] = (
+        "steps of the duty from rest, of several sizes: a delay shifts every response "
+        "by the same time, whatever the step"
+    )
 
     def delay(self):
         return self.tau_d

@@ -22,6 +22,10 @@ class Leakage(AbstractStatelessEffect):
     )  # fmt: skip
 
     name: ClassVar[str] = "leakage"
+    revealing_run: ClassVar[str] = (
+        "a long hold (a minute) mid-mast with a heavy load and the motor off: only a "
+        "leak lets the fork sink"
+    )
 
     def extra_flow(self, plant, z, sig: Signals):
         return -self.C_L * sig.p

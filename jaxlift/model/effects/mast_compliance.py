@@ -39,6 +39,10 @@ class MastCompliance(AbstractEffect):
     )  # fmt: skip
 
     name: ClassVar[str] = "mast_compliance"
+    revealing_run: ClassVar[str] = (
+        "the same slow run with a light and a heavy load: the mast's spring frequency "
+        "falls with the load mass"
+    )
     state_names: ClassVar[tuple[str, ...]] = ("delta", "delta_rate")
     state_scales: ClassVar[tuple[float, ...]] = (1e-7, 1e-6)
     overrides_acceleration: ClassVar[bool] = True

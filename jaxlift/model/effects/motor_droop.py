@@ -27,6 +27,10 @@ class MotorDroop(AbstractStatelessEffect):
     # followed it to chi2/N 29 and 5.6 with cf_con at its bound; with it, 1.01 each.
 
     name: ClassVar[str] = "motor_droop"
+    revealing_run: ClassVar[str] = (
+        "the same duty with a light and a heavy load: a drooping motor lifts the "
+        "heavy load measurably slower"
+    )
 
     def motor_offset(self, plant, z, sig: Signals):
         return -self.kappa * sig.p

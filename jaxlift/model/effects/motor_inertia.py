@@ -31,6 +31,10 @@ class MotorInertia(AbstractEffect):
     )  # fmt: skip
 
     name: ClassVar[str] = "motor_inertia"
+    revealing_run: ClassVar[str] = (
+        "steps of the duty from rest, of several sizes: a motor lag rounds the start "
+        "of every lift with the same time constant"
+    )
     state_names: ClassVar[tuple[str, ...]] = ("omega_m",)
     state_scales: ClassVar[tuple[float, ...]] = (1e-3,)
     overrides_acceleration: ClassVar[bool] = False

@@ -79,6 +79,12 @@ class StickSlip(AbstractStatelessEffect):
     )  # fmt: skip
 
     name: ClassVar[str] = "stick_slip"
+    revealing_run: ClassVar[str] = (
+        "very slow runs (below 10 mm/s) at two or three duties, each held for at "
+        "least 10 s, with holds between: a breakaway force makes the fork stick and "
+        "slip in every one of them, and the slips' rate and peak speed at several "
+        "duties fix its size and Stribeck speed"
+    )
 
     def extra_friction(self, plant, z, sig: Signals):
         v = sig.v
