@@ -165,11 +165,11 @@ def test_a_candidate_failing_only_the_heldout_test_is_one_test_short(short_fit, 
     assert by["entrained_air"].not_kept is None  # short of two tests: not a candidate
 
 
-def _scripted_iteration(base, monkeypatch, second_finds: str | None):
+def _scripted_iteration(base, monkeypatch, second_finds: str | None, also_short=False):
     """diagnose() scripted: the first step finds nothing it keeps, with mast compliance
-    passing the tests but removing too little (partial); from the model with it, the
-    next step finds ``second_finds`` (or nothing). Only the model with both reaches the
-    noise floor."""
+    passing the tests but removing too little (partial; ``also_short``: leakage too,
+    with a smaller BIC drop); from the model with it, the next step finds
+    ``second_finds`` (or nothing). Only the model with both reaches the noise floor."""
 
     def model(*effects):
         return dataclasses.replace(base, effects=list(effects))
@@ -177,6 +177,9 @@ def _scripted_iteration(base, monkeypatch, second_finds: str | None):
     mast = EffectScreen("mast_compliance", "ks_inv", 5.0, 1e-7, 100.0, 1e-6)
     mast.delta_bic, mast.explained_share = -300.0, 0.22
     mast.not_kept = "removes only 22.0% of the error above the noise (needs 25%)"
+    leak = EffectScreen("leakage", "C_L", 4.0, 1e-5, 50.0, 1e-13)
+    leak.delta_bic, leak.explained_share = -120.0, 0.08
+    leak.not_kept = "removes only 8.0% of the error above the noise (needs 25%)"
     calls = []
 
     def scripted(logs, validate_logs=(), *, base_effects=(), base=None, **kw):
@@ -185,6 +188,8 @@ def _scripted_iteration(base, monkeypatch, second_finds: str | None):
         d = dg.Diagnosis("none", [], effects, 1.0, 1, 1.0, base or model(), None)
         if effects == []:
             d.partial = [(mast, model("mast_compliance"))]
+            if also_short:
+                d.partial.append((leak, model("leakage")))
         elif effects == ["mast_compliance"] and second_finds == "undecided":
             d.verdict, d.undecided_between = "undecided", ["input_delay", "motor_inertia"]
             # with either, the error would reach the noise floor (two effects)
@@ -243,14 +248,17 @@ def test_lookahead_keeps_an_effect_when_the_second_is_one_of_two(short_fit, monk
 
 def test_lookahead_does_not_keep_a_stand_in(short_fit, monkeypatch):
     logs, base = short_fit
-    _scripted_iteration(base, monkeypatch, second_finds=None)
+    _scripted_iteration(base, monkeypatch, second_finds=None, also_short=True)
     steps = dg.diagnose_iteratively(logs, base=dataclasses.replace(base, effects=[]))
     assert dg.final_verdict(steps) == "unexplained" and dg.found_effects(steps) == []
     assert any("provisionally" in r and "not kept" in r for r in steps[-1].reasons)
-    # the candidate one test short is not named, but the run that would show it is
+    # the candidate that came closest is not named, but the run that would show it is;
+    # not that of the other one short (less BIC drop)
     run = jl.EFFECTS["mast_compliance"].revealing_run
     suggested = [r for r in steps[-1].reasons if run in r]
-    assert len(suggested) == 1 and suggested[0].startswith("mast_compliance removes only 22.0%")
+    assert len(suggested) == 1
+    assert suggested[0].startswith("the candidate that came closest, mast_compliance, removes")
+    assert not any(jl.EFFECTS["leakage"].revealing_run in r for r in steps[-1].reasons)
     # without the lookahead, the same first step and no attempt; the run is suggested
     steps = dg.diagnose_iteratively(
         logs, base=dataclasses.replace(base, effects=[]), lookahead=False
