@@ -36,8 +36,8 @@ class EntrainedAir(AbstractStatelessEffect):
     name: ClassVar[str] = "entrained_air"
     revealing_run: ClassVar[str] = (
         "slow runs with a light and a heavy load: air softens the oil most at low "
-        "pressure, so the oscillation's frequency changes with the load more than the "
-        "oil alone explains"
+        "pressure, so the light load oscillates slower, against the heavy load, than "
+        "the oil's own compressibility explains"
     )
 
     def extra_capacitance(self, plant, z, sig: Signals, volume):

@@ -40,8 +40,9 @@ class MastCompliance(AbstractEffect):
 
     name: ClassVar[str] = "mast_compliance"
     revealing_run: ClassVar[str] = (
-        "the same slow run with a light and a heavy load: the mast's spring frequency "
-        "falls with the load mass"
+        "the same slow run with a light and a heavy load, low and high on the mast: the "
+        "oil's spring softens as its column grows, the mast's does not, so a mode that "
+        "moves with the load but not with the height is the mast"
     )
     state_names: ClassVar[tuple[str, ...]] = ("delta", "delta_rate")
     state_scales: ClassVar[tuple[float, ...]] = (1e-7, 1e-6)
