@@ -871,12 +871,12 @@ def diagnose_iteratively(
             # log got worse): say which run would show it plainly. Only that one: for a
             # law outside the eight most candidates are one test short (measured,
             # tests/test_unexplained.py's drag: six of seven, 3-24 % each)
-            for s, _ in [] if named else last.partial[:1]:
-                if run := EFFECTS[s.effect].revealing_run:
-                    last.reasons.append(
-                        f"the candidate that came closest, {s.effect}, {s.not_kept}; a run "
-                        f"that would show whether it is there: {run}"
-                    )
+            closest = None if named or not last.partial else last.partial[0][0]
+            if closest is not None and (run := EFFECTS[closest.effect].revealing_run):
+                last.reasons.append(
+                    f"the candidate that came closest, {closest.effect}, {closest.not_kept}; "
+                    f"a run that would show whether it is there: {run}"
+                )
             for line in last.reasons:
                 say("unexplained: " + line)
     return steps
