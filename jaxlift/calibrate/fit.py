@@ -223,7 +223,7 @@ def fit(
 
     solver = LM() if solver is None else solver
     if isinstance(solver, LM):
-        method, max_steps, gtol = "lm", solver.max_steps, solver.gtol
+        method, max_steps = "lm", solver.max_steps
     elif isinstance(solver, OptimistixLM):
         method, max_steps = "optimistix", solver.max_steps
         rtol, atol, vectorize = solver.rtol, solver.atol, solver.vectorize
@@ -303,13 +303,13 @@ def fit(
                 [free_all.index(n) for n in names]
                 + [len(free_all) + j for j in range(problem.n_x0)]
             )
-            starts = _synchronised_starts(problem, starts, active, synchronise, gtol, progress,
+            starts = _synchronised_starts(problem, starts, active, synchronise, solver, progress,
                                           desc, workers)  # fmt: skip
-            runs = _lm_starts(problem, starts, active, max_steps, gtol, progress, desc, workers)
+            runs = _lm_starts(problem, starts, active, solver, progress, desc, workers)
             chi2s = np.array([r.chi2 if np.isfinite(r.chi2) else np.inf for r in runs])
             best = int(np.argmin(chi2s))
-            run = _escape_log_traps(problem, runs[best], names, free_all, active, max_steps, gtol)
-            run = _hold_at_upper_bounds(problem, run, names, free_all, active, max_steps, gtol)
+            run = _escape_log_traps(problem, runs[best], names, free_all, active, solver)
+            run = _hold_at_upper_bounds(problem, run, names, free_all, active, solver)
             chi2s[best] = run.chi2
             theta_best, ok, msg = run.theta, run.converged, run.message
             if run.undetermined:
@@ -463,7 +463,7 @@ def _log_read_starts(
     return out
 
 
-def _escape_log_traps(problem, run, names, free_all, active, max_steps, gtol):
+def _escape_log_traps(problem, run, names, free_all, active, solver):
     """Restart the LM from ``run`` with each baseline parameter that it drove to
     (nearly) its lower bound of 0 set back to its nominal value; keep what lowers chi2.
 
@@ -485,16 +485,13 @@ def _escape_log_traps(problem, run, names, free_all, active, max_steps, gtol):
             continue
         theta = np.array(run.theta, dtype=np.float64)
         theta[k] = float(to_unconstrained(info, inside_bounds(info, ref)))
-        retry = levenberg_marquardt(
-            problem.residuals_at, problem.jacobian_at, theta, active,
-            max_iter=max_steps, gtol=gtol, noise_floor=NOISE_FLOOR,
-        )  # fmt: skip
+        retry = _lm(problem, theta, active, solver)
         if np.isfinite(retry.chi2) and retry.chi2 < run.chi2:
             run = retry
     return run
 
 
-def _hold_at_upper_bounds(problem, run, names, free_all, active, max_steps, gtol):
+def _hold_at_upper_bounds(problem, run, names, free_all, active, solver):
     """Hold each parameter that ``run`` drove above its upper bound at that bound and
     refit the others (the active-set step of a bounded least-squares fit).
 
@@ -515,10 +512,7 @@ def _hold_at_upper_bounds(problem, run, names, free_all, active, max_steps, gtol
     if not over:
         return run
     keep = np.array([i for i in active if i not in over])
-    return levenberg_marquardt(
-        problem.residuals_at, problem.jacobian_at, theta, keep,
-        max_iter=max_steps, gtol=gtol, noise_floor=NOISE_FLOOR,
-    )  # fmt: skip
+    return _lm(problem, theta, keep, solver)
 
 
 #: chi2 per degree of freedom up to which a fit counts as at the sensor-noise floor
@@ -549,26 +543,32 @@ def describe_direction(v, labels, infos) -> str:
 SYNC_MAX_STEPS = 30
 
 
-def _synchronised_starts(problem, starts, active, gains, gtol, progress, desc, workers):
+def _synchronised_starts(problem, starts, active, gains, solver, progress, desc, workers):
     """Each start moved through fits pulled towards the data at ``gains`` in turn
     (``fit(..., synchronise=...)``); a start whose pulled fit fails stays where it was."""
+    short = dataclasses.replace(solver, max_steps=SYNC_MAX_STEPS)
     for gain in gains:
         pulled = dataclasses.replace(problem, nudge_gain=float(gain))
-        runs = _lm_starts(pulled, starts, active, SYNC_MAX_STEPS, gtol, progress,
+        runs = _lm_starts(pulled, starts, active, short, progress,
                           f"{desc}, pulled at {gain:g}/s", workers)  # fmt: skip
         starts = np.stack([r.theta if np.isfinite(r.chi2) else th for r, th in zip(runs, starts)])
     return starts
 
 
-def _lm_starts(problem, starts, active, max_steps, gtol, progress, desc, workers=None):
+def _lm(problem, theta, active, solver: LM):
+    """jaxlift's Levenberg--Marquardt on ``problem`` from ``theta`` over ``active``."""
+    return levenberg_marquardt(
+        problem.residuals_at, problem.jacobian_at, theta, active, max_iter=solver.max_steps,
+        gtol=solver.gtol, noise_floor=NOISE_FLOOR, geodesic_after=solver.geodesic_after,
+    )  # fmt: skip
+
+
+def _lm_starts(problem, starts, active, solver, progress, desc, workers=None):
     """jaxlift's Levenberg--Marquardt from every start, one thread per core (the
     compiled residuals and Jacobian are shared by all starts and stages)."""
 
     def run(th):
-        return levenberg_marquardt(
-            problem.residuals_at, problem.jacobian_at, th, active, max_iter=max_steps,
-            gtol=gtol, noise_floor=NOISE_FLOOR,
-        )  # fmt: skip
+        return _lm(problem, th, active, solver)
 
     runs = []
     bar = tqdm(total=len(starts), desc=desc, unit="start", disable=progress is None, leave=False)

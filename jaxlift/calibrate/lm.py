@@ -23,6 +23,24 @@ steps after the optimum has been reached. This driver
   mostly along well-determined directions, where the integrator's noise swamps the
   decrease), tries the undamped Gauss--Newton step along the directions the data
   determine, with a short line search, before it gives up;
+- once a fit has taken ``geodesic_after`` trial steps without converging, takes
+  geodesically accelerated steps (Transtrum and Sethna, 2012: "Improvements to
+  the Levenberg--Marquardt algorithm for nonlinear least-squares minimization",
+  arXiv:1201.5885; GSL's ``lmaccel``): the damped step ``v`` plus half the
+  acceleration ``a`` that keeps the step on the curved valley of chi2, ``a`` from the
+  residuals' second directional derivative along ``v`` (one extra residual evaluation
+  per trial, a finite difference), the step rejected when ``2 |a| / |v| > 0.75``.
+  Without it the fit crawls along such valleys: measured on the two logs of
+  ``tests/test_unexplained.py`` (a quadratic drag hidden, none of the candidates), the
+  baseline fit continued from its end crawled from chi2/N 2.0970 to 2.0764 in 100 trial
+  steps (93 accepted, each with ``rho`` 0.3--0.5, the Gauss--Newton decrease still 0.023
+  per sample), every confirmation refit the same way; with the acceleration the same
+  continuation converged in 41 trials at chi2/N 2.0564 (Gauss--Newton decrease 2e-9).
+  Not from the first step: where the plain steps converge, the accelerated ones take
+  more of them, each with the extra evaluation (measured on the shipped logs' baseline
+  fit, same optimum: 15, 38 and 40 steps in the three stages, 76 s, against 15, 30 and
+  25 steps, 49 s); the shipped fits and the synthetic ones of the test suite converge
+  within 40 trials, the crawls do not;
 - does not let directions the data do not determine defeat that rule: when the
   iterations run out (or no step lowers chi2) with the fit at the noise floor
   (``s² <= noise_floor``, for residuals scaled by their noise as the fit's are) and
@@ -42,6 +60,10 @@ import dataclasses
 from collections.abc import Callable
 
 import numpy as np
+
+#: Largest ``2 |a| / |v|`` (acceleration against velocity) of an accepted geodesically
+#: accelerated step (Transtrum and Sethna's alpha; GSL's ``avmax``, default 0.75).
+ACCEL_MAX = 0.75
 
 
 @dataclasses.dataclass
@@ -123,6 +145,7 @@ def levenberg_marquardt(
     noise_floor: float | None = None,
     se_max: float = 0.5,
     max_rescues: int = 10,
+    geodesic_after: int | None = 40,
     callback: Callable[[int, float], None] | None = None,
 ) -> LMResult:
     """Minimise ``sum(residuals(theta)**2)`` over ``theta[active]``.
@@ -151,6 +174,8 @@ def levenberg_marquardt(
         max_rescues: how many times a stalled damping may be bypassed by an undamped
             Gauss--Newton step along the determined directions (see the comment in
             the loop); 0 switches it off.
+        geodesic_after: from this trial step on, geodesically accelerated steps (module
+            docstring); 0: from the start; None: never (the plain damped step).
         callback: called with (trial number, current chi2) after each trial.
     """
     theta = np.array(theta0, dtype=np.float64)
@@ -266,7 +291,31 @@ def levenberg_marquardt(
             lam *= nu
             nu *= 2.0
             continue
+        # the decrease the linear model predicts for the damped step (for an accelerated
+        # step too: the acceleration is a second-order correction, as in GSL's lmaccel)
         pred = -(2.0 * gs @ step_s + step_s @ As @ step_s)
+        if geodesic_after is not None and trial >= geodesic_after and pred > 0:
+            # the residuals' second derivative along the step, by a finite difference
+            # (h = 0.1 of the step, Transtrum and Sethna's choice); the acceleration is
+            # the damped Gauss--Newton answer to it
+            h = 0.1
+            trial_theta = theta.copy()
+            trial_theta[idx] += h * step_s / d
+            r_h = np.asarray(residuals(trial_theta))
+            n_eval += 1
+            Ja = np.where(np.isfinite(J[:, idx]), J[:, idx], 0.0)
+            with np.errstate(over="ignore", invalid="ignore"):
+                rvv = (2.0 / h) * ((r_h - r) / h - Ja @ (step_s / d))
+                acc_s = -np.linalg.solve(As + lam * np.eye(idx.size), (Ja.T @ rvv) / d)
+            ratio = 2.0 * np.linalg.norm(acc_s) / max(float(np.linalg.norm(step_s)), 1e-300)
+            if not (np.all(np.isfinite(acc_s)) and ratio <= ACCEL_MAX):
+                # the valley curves more than a step of this length can follow: shorter
+                lam *= nu
+                nu *= 2.0
+                if callback is not None:
+                    callback(trial, chi2)
+                continue
+            step_s = step_s + 0.5 * acc_s
         trial_theta = theta.copy()
         trial_theta[idx] += step_s / d
         r_new = np.asarray(residuals(trial_theta))

@@ -20,10 +20,15 @@ class LM(eqx.Module):
         gtol: stop when the chi2 decrease a full Gauss--Newton step would still bring is
             below ``gtol`` x chi2 per degree of freedom (the remaining step is below
             ``sqrt(gtol)`` standard errors).
+        geodesic_after: trial steps after which a start that has not converged takes
+            geodesically accelerated steps (:mod:`jaxlift.calibrate.lm`: they follow
+            curved valleys of chi2 along which plain damped steps crawl); 0: from the
+            start, None: never.
     """
 
     max_steps: int = 100
     gtol: float = 1e-2
+    geodesic_after: int | None = 40
 
 
 class OptimistixLM(eqx.Module):
