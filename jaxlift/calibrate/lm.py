@@ -39,8 +39,8 @@ steps after the optimum has been reached. This driver
   Not from the first step: where the plain steps converge, the accelerated ones take
   more of them, each with the extra evaluation (measured on the shipped logs' baseline
   fit, same optimum: 15, 38 and 40 steps in the three stages, 76 s, against 15, 30 and
-  25 steps, 49 s); the shipped fits and the synthetic ones of the test suite converge
-  within 40 trials, the crawls do not;
+  25 steps, 49 s, both beside the same other job); that fit converges within 40 trials
+  in every stage, so with the switch it is the plain one to the last digit;
 - does not let directions the data do not determine defeat that rule: when the
   iterations run out (or no step lowers chi2) with the fit at the noise floor
   (``s² <= noise_floor``, for residuals scaled by their noise as the fit's are) and
