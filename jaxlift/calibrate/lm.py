@@ -285,8 +285,9 @@ def levenberg_marquardt(
             if dec <= 100 * gtol * s2:
                 return done(True, "converged (no further decrease within integrator noise)", dec)
             return on_a_ridge(dec) or done(False, "stagnated: no step lowers chi2", dec)
+        damped = As + lam * np.eye(idx.size)
         try:
-            step_s = -np.linalg.solve(As + lam * np.eye(idx.size), gs)
+            step_s = -np.linalg.solve(damped, gs)
         except np.linalg.LinAlgError:
             lam *= nu
             nu *= 2.0
@@ -294,6 +295,8 @@ def levenberg_marquardt(
         # the decrease the linear model predicts for the damped step (for an accelerated
         # step too: the acceleration is a second-order correction, as in GSL's lmaccel)
         pred = -(2.0 * gs @ step_s + step_s @ As @ step_s)
+        rho, point = -np.inf, None
+        curved = False  # the valley curves more than a step of this length can follow
         if geodesic_after is not None and trial >= geodesic_after and pred > 0:
             # the residuals' second derivative along the step, by a finite difference
             # (h = 0.1 of the step, Transtrum and Sethna's choice); the acceleration is
@@ -306,30 +309,26 @@ def levenberg_marquardt(
             Ja = np.where(np.isfinite(J[:, idx]), J[:, idx], 0.0)
             with np.errstate(over="ignore", invalid="ignore"):
                 rvv = (2.0 / h) * ((r_h - r) / h - Ja @ (step_s / d))
-                acc_s = -np.linalg.solve(As + lam * np.eye(idx.size), (Ja.T @ rvv) / d)
+                acc_s = -np.linalg.solve(damped, (Ja.T @ rvv) / d)
             ratio = 2.0 * np.linalg.norm(acc_s) / max(float(np.linalg.norm(step_s)), 1e-300)
-            if not (np.all(np.isfinite(acc_s)) and ratio <= ACCEL_MAX):
-                # the valley curves more than a step of this length can follow: shorter
-                lam *= nu
-                nu *= 2.0
-                if callback is not None:
-                    callback(trial, chi2)
-                continue
-            step_s = step_s + 0.5 * acc_s
-        trial_theta = theta.copy()
-        trial_theta[idx] += step_s / d
-        r_new = np.asarray(residuals(trial_theta))
-        n_eval += 1
-        chi2_new = float(r_new @ r_new)
-        ok = np.isfinite(chi2_new) and chi2_new < max_chi2 and pred > 0
-        rho = (chi2 - chi2_new) / pred if ok else -np.inf
-        point = linearise(trial_theta) if rho > 1e-4 else None
+            curved = not (np.all(np.isfinite(acc_s)) and ratio <= ACCEL_MAX)
+            if not curved:
+                step_s = step_s + 0.5 * acc_s
+        if not curved:  # else rejected without evaluating it: a shorter step next
+            trial_theta = theta.copy()
+            trial_theta[idx] += step_s / d
+            r_new = np.asarray(residuals(trial_theta))
+            n_eval += 1
+            chi2_new = float(r_new @ r_new)
+            ok = np.isfinite(chi2_new) and chi2_new < max_chi2 and pred > 0
+            rho = (chi2 - chi2_new) / pred if ok else -np.inf
+            point = linearise(trial_theta) if rho > 1e-4 else None
         if point is not None:
             theta, r, J, As, gs, d, D2, chi2, dec = point
             n_iter += 1
             lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
-        else:  # rejected (or the Jacobian there overflowed)
+        else:  # rejected (too curved, or the Jacobian there overflowed)
             lam *= nu
             nu *= 2.0
         if callback is not None:
