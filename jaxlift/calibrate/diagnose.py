@@ -340,6 +340,9 @@ def diagnose(
                         return None, None, None  # the effect reads none from these logs
                 else:
                     found = [guess]
+                # from the base's parameters, the initial-height offsets from 0 (starting
+                # them at the base's was measured: no fewer trials, other local minima;
+                # docs/statistics.md, "Confirm: refits")
                 res = None  # the best refit from the start(s): stick-slip reads up to two
                 for start in found:
                     one = fit(logs, effects=[*base.effects, s.effect], free=f"{free},effects",
@@ -911,7 +914,8 @@ def backward_check(
     seed: int,
     workers: int | None = None,
 ) -> tuple[str, float, FitResult] | None:
-    """Refit ``model`` without each of ``candidates`` (warm start, one thread per core);
+    """Refit ``model`` without each of ``candidates`` (warm start from its parameters,
+    offsets from 0; one thread per core);
     the one whose removal raises the BIC least: (name, BIC change, reduced fit)."""
     bic = _bic(model.chi2, len(model.free), model.n_residuals, model.inflation)
 
