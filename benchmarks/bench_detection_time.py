@@ -6,6 +6,7 @@ study's own times were taken two cases at a time, or beside other work, so they 
 not this number)::
 
     .venv/bin/python benchmarks/bench_detection_time.py [--cases 9] [--seed 2026] [--stratified]
+        [--cache off|user]
 
 A seeded random sample of the study's 100 cases (``studies/detection_power.py``, the
 same case list and the same call: ``jaxlift diagnose fit_1.csv fit_2.csv --validate
@@ -15,6 +16,14 @@ diagnosed one case after the other; the logs are generated first (not timed) int
 verdict, the study's recorded time for the same case, and the median against the
 target; writes the same text to ``benchmarks/results_detection_time.txt``. There is no
 peer: the target is absolute.
+
+JAX's persistent compilation cache (which the command line uses, ``JAXLIFT_CACHE``) is
+off by default here (``--cache off``): every case then compiles what it needs, as on a
+first run after installing. With ``--cache user`` the cases use whatever earlier runs
+left in the user's cache, which changes the times by a third or more (measured on
+case_027, alone: 147 s with the cache off, 109 s with the cases' compilations cached)
+and depends on the machine's history. The runs before this option (2026-11-28) used
+the user's cache, the command line's default, and so did the study's cases.
 """
 
 from __future__ import annotations
@@ -79,7 +88,16 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="draw null, single and pair cases in the study's proportions",
     )
+    ap.add_argument(
+        "--cache",
+        choices=("off", "user"),
+        default="off",
+        help="JAX's compilation cache for the diagnoses: off (each case compiles what "
+        "it needs) or the user's (whatever earlier runs left there)",
+    )
     args = ap.parse_args(argv)
+    if args.cache == "off":  # the diagnoses run in their own processes: they inherit it
+        os.environ["JAXLIFT_CACHE"] = "off"
     specs = gen.make_cases(seed=0)  # the study's list (studies/detection_power.py)
     rng = np.random.default_rng(args.seed)
     if args.stratified:
@@ -91,6 +109,7 @@ def main(argv: list[str] | None = None) -> int:
         f"load average at start {os.getloadavg()}")  # fmt: skip
     how = ", stratified by kind" if args.stratified else ""
     say(f"cases (seed {args.seed}{how}): {', '.join(specs[i]['case_id'] for i in picked)}")
+    say(f"compilation cache: {args.cache}")
     data = pathlib.Path(args.data)
     for i in picked:  # generation is not part of the diagnosis: done first, not timed
         gen.write_case(specs[i], data, verbose=False)
