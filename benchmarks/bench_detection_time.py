@@ -20,10 +20,11 @@ peer: the target is absolute.
 JAX's persistent compilation cache (which the command line uses, ``JAXLIFT_CACHE``) is
 off by default here (``--cache off``): every case then compiles what it needs, as on a
 first run after installing. With ``--cache user`` the cases use whatever earlier runs
-left in the user's cache, which changes the times by a third or more (measured on
-case_027, alone: 147 s with the cache off, 109 s with the cases' compilations cached)
-and depends on the machine's history. The runs before this option (2026-11-28) used
-the user's cache, the command line's default, and so did the study's cases.
+left in the user's cache, which changes the times by about a third (measured on
+case_027, alone: 139-147 s with the cache off, 101-109 s with the case's compilations
+cached) and depends on the machine's history. The runs before this option (2026-11-28)
+used the user's cache, the command line's default, as did the study's cases unless a
+sitting set ``JAXLIFT_CACHE`` otherwise (not recorded).
 """
 
 from __future__ import annotations
