@@ -709,11 +709,8 @@ SEPARATING_EXPERIMENTS: dict[frozenset[str], str] = {
 
 def separating_experiment(a: str, b: str) -> str:
     """A test run that would tell effect ``a`` from effect ``b``."""
-    if "stick_slip" in (a, b):
-        return (
-            "a very slow run (below 10 mm/s) with holds: breakaway friction makes the fork "
-            "stick and slip there, and barely matters at speed"
-        )
+    if "stick_slip" in (a, b):  # slow runs show a breakaway force, whatever the other is
+        return EFFECTS["stick_slip"].revealing_run
     return SEPARATING_EXPERIMENTS.get(
         frozenset({a, b}),
         "a run in the regime where the two fitted models' predictions differ most (compare "
