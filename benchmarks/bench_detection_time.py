@@ -19,8 +19,9 @@ peer: the target is absolute.
 
 ``--time-limit S`` stops a case after ``S`` seconds (``S`` above the target): its time
 is then only known to be above ``S``, which still settles the median against the
-target (the median is below the target if at least half the cases finish below it,
-above it otherwise) and gives the median exactly when the middle case finished. A
+target whenever the middle case (both middle cases, for an even number) finished, and
+gives the median exactly then; with a stopped case in the middle the median is above
+the target for an odd number of cases, and may be left unsettled for an even one. A
 stopped case has no verdict. Without it every case runs to its end (a stick-slip pair
 can take more than half an hour).
 
