@@ -200,6 +200,29 @@ def test_residuals_sum_to_the_tuning_cost():
     assert max(per_stage) > 1.5 * min(per_stage)  # stage 3's gains pay for their noise
 
 
+def test_evaluate_draws_same_per_draw_whatever_the_threads():
+    """The draws of a robustness report run in chunks on threads (the last chunk padded
+    with copies of the last draw): each draw's cost, flag and figures are those of the
+    draw evaluated on its own, with its own noise realisation, for 1, 2 or 3 workers
+    (3 draws in chunks of 2: one padded)."""
+    draws = [dict(CALIBRATED, beta=b) for b in (3.0e8, 4.0e8, 5.5e8)]
+    plants, effs = batch_models(PLANT, (), draws)
+    seeds = np.array([[11], [12], [13]], dtype=np.uint32)  # a realisation per draw
+    kw = dict(noise_seeds=seeds, sampled=True)
+    runs = [evaluate_draws(THESIS, plants, effs, REF, workers=w, **kw) for w in (1, 2, 3)]
+    for c, ok, fig in runs:
+        assert c.shape == ok.shape == (3,) and ok.all()
+        np.testing.assert_allclose(c, runs[0][0], rtol=1e-12)
+        for a, b in zip(jax.tree.leaves(fig), jax.tree.leaves(runs[0][2]), strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-12)  # NaN (a stage not reached) = NaN
+    # each draw alone, on its own seed: the same numbers
+    for b in range(3):
+        p1, e1 = batch_models(PLANT, (), draws[b : b + 1])
+        c1, _, _ = evaluate_draws(THESIS, p1, e1, REF, noise_seeds=seeds[b : b + 1], sampled=True)
+        np.testing.assert_allclose(c1[0], runs[0][0][b], rtol=1e-12)
+    assert len(set(np.round(runs[0][0], 9))) == 3  # the draws differ: not one run copied
+
+
 @pytest.mark.slow
 def test_failed_run_costs_finite_penalty_and_finite_gradient():
     """A batch in which one run fails (a stiff plant -- tiny oil volume, hard oil --

@@ -10,10 +10,13 @@ import math
 import os
 from collections.abc import Mapping, Sequence
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike
 
+from ..calibrate.parallel import cpu_cores, thread_map
 from ..model.build import all_param_infos, with_params
 from ..model.effects import EFFECTS, AbstractEffect
 from ..model.params import ParameterError, from_unconstrained, load_params_json, to_unconstrained
@@ -208,6 +211,13 @@ def batch_models(
     return jax.tree.map(lambda *xs: jnp.stack(xs), *models)
 
 
+#: :func:`closed_loop_costs` compiled once per model structure, run configuration and
+#: batch shape, so that the gain sets of a robustness report share one compilation
+#: (called uncompiled, ``lax.map`` traced and compiled its body again for every gain
+#: set: 55 of the 240 s of the README's report's robustness section, 2026-11-29).
+_compiled_costs = eqx.filter_jit(closed_loop_costs)
+
+
 def evaluate_draws(
     controller: AbstractController,
     plants: Plant,
@@ -215,17 +225,36 @@ def evaluate_draws(
     reference: Reference,
     *,
     weights: CostWeights | None = None,
+    noise_seeds: ArrayLike | None = None,
+    workers: int | None = None,
     **sim_kw,
 ) -> tuple[np.ndarray, np.ndarray, Figures]:
-    """Costs, success flags and figures of one controller over stacked draws on one
-    reference (``vmap``)."""
-    c, ok, fig = closed_loop_costs(
-        controller,
-        plants,
-        effects,
-        stack_references([reference]),
-        batched_plants=True,
-        weights=weights,
-        **sim_kw,
-    )
-    return np.asarray(c[:, 0]), np.asarray(ok[:, 0]), jax.tree.map(lambda a: a[:, 0], fig)
+    """Costs, success flags and figures of one controller over stacked draws (leading
+    axis ``B`` of ``plants``/``effects``) on one reference: arrays of length ``B``.
+
+    ``noise_seeds``: see :func:`closed_loop_costs` (``(1,)``, or ``(B, 1)`` with a
+    noise realisation per draw). The draws run one after the other (``lax.map``; a
+    single ODE solve uses one core) in ``workers`` chunks side by side on threads
+    (default: one per core; :mod:`jaxlift.calibrate.parallel`). Every chunk has the
+    same size -- the last is padded with copies of the last draw, whose results are
+    dropped -- so there is one compiled shape, and each draw's result does not depend
+    on ``workers`` (tested). ``sim_kw`` go to :func:`simulate_closed_loop`."""
+    refs = stack_references([reference])
+    n = int(jax.tree.leaves(plants)[0].shape[0])
+    seeds = None if noise_seeds is None else np.asarray(noise_seeds)
+    k = max(1, min(n, cpu_cores() if workers is None else int(workers)))
+    size = -(-n // k)
+
+    def chunk(i: int):
+        idx = np.minimum(np.arange(i * size, (i + 1) * size), n - 1)
+        p, e = jax.tree.map(lambda a: a[idx], (plants, effects))
+        s = seeds[idx] if seeds is not None and seeds.ndim == 2 else seeds
+        out = _compiled_costs(
+            controller, p, e, refs, batched_plants=True, weights=weights,
+            noise_seeds=s, **sim_kw,
+        )  # fmt: skip
+        return jax.tree.map(lambda a: np.asarray(a[:, 0]), out)
+
+    parts = list(thread_map(chunk, range(k), workers=k))
+    c, ok, fig = jax.tree.map(lambda *xs: np.concatenate(xs)[:n], *parts)
+    return c, ok, fig
