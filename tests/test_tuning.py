@@ -223,6 +223,20 @@ def test_evaluate_draws_same_per_draw_whatever_the_threads():
     assert len(set(np.round(runs[0][0], 9))) == 3  # the draws differ: not one run copied
 
 
+def test_tune_multistart_threads_do_not_change_the_result():
+    """The starts of a multistart tuning run side by side on threads: the same gains,
+    objective and evaluations as one after the other (a small budget)."""
+    draws = [dict(CALIBRATED, beta=b) for b in (3.5e8, 5.0e8)]
+    plants, effs = batch_models(PLANT, (), draws)
+    kw = dict(batched_plants=True, robust=True, steps=3)
+    one, two = (tune_multistart([START, THESIS], plants, effs, [REF], workers=w, **kw)
+                for w in (1, 2))  # fmt: skip
+    assert one.n_evaluations == two.n_evaluations == 6
+    assert one.best_cost == two.best_cost and one.message == two.message
+    assert one.controller.gain_values() == two.controller.gain_values()
+    assert one.controller.gain_values() != START.gain_values()  # it tuned
+
+
 @pytest.mark.slow
 def test_failed_run_costs_finite_penalty_and_finite_gradient():
     """A batch in which one run fails (a stiff plant -- tiny oil volume, hard oil --
