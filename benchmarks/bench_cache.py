@@ -25,6 +25,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from _machine import cpu_model
+
 ROOT = Path(__file__).resolve().parent.parent
 LOGS = ["data/lift_500kg.csv", "data/lift_1500kg.csv"]
 HELD = ["--validate", "data/validation_1000kg.csv"]
@@ -64,7 +66,7 @@ def main() -> int:
     args = ap.parse_args()
     lines = [
         f"# bench_cache {datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M} UTC, "
-        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"{cpu_model()}, {os.cpu_count()} cores, "
         f"Python {platform.python_version()}",
     ]
     with tempfile.TemporaryDirectory() as tmp:

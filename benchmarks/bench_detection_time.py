@@ -54,6 +54,7 @@ ROOT = HERE.parent
 sys.path.insert(0, str(ROOT / "studies"))
 import detection_generator as gen  # noqa: E402
 import detection_power as study  # noqa: E402
+from _machine import cpu_model  # noqa: E402
 
 RESULTS = HERE / "results_detection_time.txt"
 RESULTS_STRATIFIED = HERE / "results_detection_time_stratified.txt"
@@ -85,18 +86,6 @@ def stratified_sample(specs: list[dict], n: int, rng: np.random.Generator) -> li
     for k, members in sorted(kinds.items()):
         picked += rng.choice(members, size=counts[k], replace=False).tolist()
     return sorted(picked)
-
-
-def cpu_model() -> str:
-    """The processor's name (Linux: /proc/cpuinfo), for comparing runs across sittings:
-    the same tests have run 1.8 times faster on one sitting's machine than on another's."""
-    try:
-        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def median_line(walls: list[tuple[float, bool]]) -> str:

@@ -55,6 +55,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "tests"))
 
 import scipy_reference as sr
+from _machine import cpu_model
 from test_fit import TRUTH, _synthetic_logs
 
 RESULTS = HERE / "results_fit.txt"
@@ -231,7 +232,7 @@ def main() -> None:
         f"scipy {scipy.__version__}, numpy {np.__version__}"
     )
     say(
-        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
+        f"machine: {cpu_model()}, {os.cpu_count()} CPU cores, "
         f"jax devices {[d.platform for d in jax.devices()]}"
     )
     say(f"load average at start (1, 5, 15 min): {_load()}")

@@ -42,6 +42,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "tests"))
 
 import scipy_reference as sr
+from _machine import cpu_model
 from test_reference import thesis_like_run
 
 RESULTS = HERE / "results_simulate.txt"
@@ -120,7 +121,7 @@ def main() -> None:
         f"numpy {np.__version__}"
     )
     say(
-        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
+        f"machine: {cpu_model()}, {os.cpu_count()} CPU cores, "
         f"jax devices {[d.platform for d in jax.devices()]}"
     )
     say(f"load average at start (1, 5, 15 min): {_load()}")

@@ -57,7 +57,6 @@ jax.config.update("jax_enable_x64", True)
 import argparse
 import datetime
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -65,6 +64,7 @@ from pathlib import Path
 import equinox as eqx
 import jax.numpy as jnp
 import scipy
+from _machine import cpu_model
 from scipy.optimize import minimize
 
 import jaxlift as jl
@@ -251,7 +251,7 @@ def main() -> int:
         + ("; the cores are shared with other jobs: timings are pessimistic" if busy else "")
     )
     out(
-        f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; jax "
+        f"# {cpu_model()}, {os.cpu_count()} cores; jax "
         f"{jax.__version__}, scipy {scipy.__version__}; model: {source}"
     )
     out("# protocol: every optimiser runs to its own convergence from the same start,")

@@ -256,5 +256,4 @@ def evaluate_draws(
         return jax.tree.map(lambda a: np.asarray(a[:, 0]), out)
 
     parts = list(thread_map(chunk, range(k), workers=k))
-    c, ok, fig = jax.tree.map(lambda *xs: np.concatenate(xs)[:n], *parts)
-    return c, ok, fig
+    return jax.tree.map(lambda *xs: np.concatenate(xs)[:n], *parts)
