@@ -22,7 +22,7 @@ from jaxlift.posterior.moves import MOVES
 from jaxlift.posterior.predictive import hdi as _hdi
 from jaxlift.posterior.predictive import posterior_draws
 from jaxlift.posterior.problem import prepare_posterior
-from jaxlift.posterior.sampler import posterior_samples, sample_posterior
+from jaxlift.posterior.sampler import auto_walkers, posterior_samples, sample_posterior
 
 #: Truth away from the nominal values (as in test_fit), no hidden effect.
 TRUTH = dict(
@@ -365,6 +365,28 @@ def test_cli_end_to_end(logs, tmp_path, capsys):
     assert len({d["k1"] for d in draws}) > 1
     assert len({d["beta"] for d in draws}) > 1
     assert posterior_draws(out, 5, seed=1) == (effects, draws)
+
+
+def test_auto_walkers_rule():
+    """``--walkers auto`` (the report's ensemble): 2 x parameters + 4, at least 16, a
+    multiple of 4, never below emcee's 2 x parameters."""
+    assert [auto_walkers(n) for n in (1, 5, 6, 7, 8, 9, 10, 14)] == [16, 16, 16, 20, 20, 24, 24, 32]
+    for n in range(1, 60):
+        w = auto_walkers(n)
+        assert w >= 2 * n + 4 and w % 4 == 0 and w - 4 < max(16, 2 * n + 4)
+    with pytest.raises(ValueError, match="ndim"):
+        auto_walkers(0)
+
+
+def test_cli_walkers_must_be_even_or_auto(tmp_path, capsys):
+    from jaxlift.cli.main import main
+
+    for bad in ("7", "many"):
+        with pytest.raises(SystemExit) as e:
+            main(["posterior", "x.csv", "--walkers", bad, "--out", str(tmp_path)])
+        assert e.value.code == 2
+        err = capsys.readouterr().err
+        assert "--walkers" in err and repr(bad if bad == "many" else int(bad)) in err
 
 
 def test_pair_plot_of_eight_parameters(tmp_path):

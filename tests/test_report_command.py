@@ -15,6 +15,7 @@ from test_posterior import TRUTH, synthetic_logs
 
 import jaxlift as jl
 from jaxlift.model.sequences import ramped_sequence
+from jaxlift.posterior.sampler import auto_walkers
 from jaxlift.report.document import Report
 from jaxlift.workflows.report import (
     FULL,
@@ -175,6 +176,11 @@ def test_report_from_nominal_on_clean_logs_resumes_without_redoing(tmp_path):
         tree.children
     )
     assert np.isfinite(az.loo(tree).elpd)
+    # the report's ensemble is the "auto" one (FULL's too): 16 walkers for the baseline's
+    # five sampled parameters, not the command's 32
+    post = json.loads((tmp_path / "posterior" / "posterior.json").read_text())
+    assert FULL.posterior_walkers == budget.posterior_walkers == "auto"
+    assert post["n_walkers"] == auto_walkers(len(post["sampled"])) == 16
 
     again = run_report(fit_logs, [held], out_dir=tmp_path, budget=budget)
     assert again["stage_wall_s"] == {"fit": 0.0, "diagnose": 0.0, "posterior": 0.0, "tune": 0.0}

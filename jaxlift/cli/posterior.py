@@ -87,6 +87,22 @@ def cmd_posterior(args) -> int:
     return 0 if res["converged"] else 1
 
 
+def _walkers(text: str) -> int | str:
+    """``--walkers``: ``auto`` or an even number >= 2 (the lower bound that depends on
+    the number of sampled parameters is checked by the sampler, with its reason)."""
+    if text == "auto":
+        return text
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected an even number or 'auto', not {text!r}"
+        ) from None
+    if n < 2 or n % 2:
+        raise argparse.ArgumentTypeError(f"expected an even number >= 2 or 'auto', not {n}")
+    return n
+
+
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     """Add this module's sub-commands to ``jaxlift``'s parser."""
     from jaxlift.posterior.moves import DEFAULT_MOVE, MOVES
@@ -119,7 +135,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="hold the motor set and the initial-height offsets at their least-squares "
         "values (default: marginalised, so that their uncertainty reaches the intervals)",
     )
-    p.add_argument("--walkers", type=int, default=32, help="number of walkers (default 32)")
+    p.add_argument(
+        "--walkers",
+        type=_walkers,
+        default=32,
+        help="number of walkers (even, at least twice the sampled parameters; default 32), "
+        "or auto: 2 x parameters + 4, at least 16, a multiple of 4 (what `jaxlift report` "
+        "uses: the chain is as long in steps, with fewer effective samples, ~47 per walker)",
+    )
     p.add_argument("--max-steps", type=int, default=20_000, help="step limit (default 20000)")
     p.add_argument("--seed", type=int, default=0, help="seed of walkers and sampler")
     p.add_argument(

@@ -22,7 +22,7 @@ from ..posterior.likelihood import cpu_devices
 from ..posterior.moves import AbstractMove, DESnookerMove
 from ..posterior.predictive import as_list
 from ..posterior.problem import SETTINGS_FILE, prepare_posterior, problem_from_settings
-from ..posterior.sampler import sample_posterior
+from ..posterior.sampler import auto_walkers, sample_posterior
 from ..report.posterior import write_outputs
 from ._scratch import output_folder
 
@@ -86,7 +86,7 @@ def run_posterior(
     likelihood: str = "ar1",
     sample_noise: bool = False,
     conditioning: str = "marginal",
-    n_walkers: int = 32,
+    n_walkers: int | str = 32,
     max_steps: int = 20_000,
     seed: int = 0,
     chunk: int = 50,
@@ -117,7 +117,10 @@ def run_posterior(
     (:func:`~jaxlift.report.posterior.write_outputs`). ``conditioning``: ``"marginal"``
     (default: the motor set and the initial-height offsets move with the sampled
     parameters, :func:`~jaxlift.posterior.problem.prepare_posterior`) or
-    ``"conditional"`` (held at their least-squares values). Returns a
+    ``"conditional"`` (held at their least-squares values). ``n_walkers``: the
+    ensemble size, or ``"auto"`` (:func:`~jaxlift.posterior.sampler.auto_walkers` of the
+    number of sampled parameters: 20 for the report's eight; the chain's length in steps
+    does not depend on it, its number of effective samples does). Returns a
     :class:`PosteriorResult` (the content of ``posterior.json``, read like a dict, and
     the ArviZ DataTree)."""
 
@@ -129,13 +132,15 @@ def run_posterior(
     move = DESnookerMove() if move is None else move
     if not isinstance(move, AbstractMove):  # fails here, before the least squares
         raise TypeError(f"move must be a jaxlift move (jaxlift.posterior.moves), not {move!r}")
+    if isinstance(n_walkers, str) and n_walkers != "auto":
+        raise ValueError(f"n_walkers must be a number or 'auto', not {n_walkers!r}")
     requested = {
         "effects": sorted(e.name for e in make_effects(effects)),
         "sample": None if sample is None else as_list(sample),
         "likelihood": likelihood,
         "sample_noise": bool(sample_noise),
         "conditioning": conditioning,
-        "n_walkers": int(n_walkers),
+        "n_walkers": n_walkers if n_walkers == "auto" else int(n_walkers),
         "seed": int(seed),
         "move": move.name,
         "params": None if params is None else {k: float(v) for k, v in params.items()},
@@ -175,6 +180,8 @@ def run_posterior(
         comment="calibrated by least squares (jaxlift posterior); effects: "
         + (", ".join(problem.effects) or "none"),
     )
+    if n_walkers == "auto":
+        n_walkers = auto_walkers(problem.ndim)
     say(
         f"sampling {', '.join(problem.names)} with {n_walkers} walkers (likelihood "
         f"{problem.likelihood}, {move.name} move, on {len(cpu_devices(devices) or (0,))} "

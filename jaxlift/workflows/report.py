@@ -81,6 +81,11 @@ class ReportBudget:
     max_effects: int = 3
     posterior: str = "mcmc"  # "mcmc" (emcee, to 50 tau) or "laplace" (the fit's errors)
     posterior_max_steps: int = 20_000
+    # ensemble size: "auto" (auto_walkers: 20 for 8 sampled parameters) or a number. The
+    # chain runs to 50 tau in steps whatever the ensemble, so the stage's time grows
+    # with it; 20 walkers give ~940 effective samples per parameter, 32 (`jaxlift
+    # posterior`'s default) ~1 500 in 1.6x the time
+    posterior_walkers: int | str = "auto"
     noise_seeds: int = 4  # speed-noise seeds of the tuning cost
     tune_steps: int = 30  # LM evaluations per tuning
     robust_draws: int = 16  # 0: no robust tuning
@@ -271,7 +276,8 @@ def _posterior_stage(fit_logs, diag: dict, budget: ReportBudget, seed: int, say,
             return _laplace_stage(fit_logs, diag, folder, seed)
         res = run_posterior(
             fit_logs, folder, effects=diag["final_effects"], params=diag["final_params"],
-            max_steps=budget.posterior_max_steps, seed=seed, progress=say, progress_bar=bar,
+            n_walkers=budget.posterior_walkers, max_steps=budget.posterior_max_steps,
+            seed=seed, progress=say, progress_bar=bar,
         )  # fmt: skip
         return {
             "mode": "mcmc",
