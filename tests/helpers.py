@@ -42,3 +42,26 @@ def assert_grad_matches_fd(f, x, *, rtol=1e-4, atol=0.0, rel_step=1e-6):
     g_fd = finite_difference_grad(f, x, rel_step=rel_step)
     np.testing.assert_allclose(g_ad, g_fd, rtol=rtol, atol=atol)
     return g_ad, g_fd
+
+
+class count_traces:
+    """Context manager: how many times jitted functions whose name contains ``name``
+    were traced inside the block (JAX's monitoring events; a call served by the jit
+    cache traces nothing), ``.n`` after the block."""
+
+    def __init__(self, name: str):
+        self.name, self.n = name, 0
+
+    def _listener(self, event: str, duration: float, **kwargs) -> None:
+        if event == "/jax/core/compile/jaxpr_trace_duration" and self.name in str(
+            kwargs.get("fun_name", "")
+        ):
+            self.n += 1
+
+    def __enter__(self):
+        jax.monitoring.register_event_duration_secs_listener(self._listener)
+        return self
+
+    def __exit__(self, *exc):
+        jax.monitoring.unregister_event_duration_listener(self._listener)
+        return False

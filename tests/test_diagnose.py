@@ -15,11 +15,13 @@ sizes, loads, sequences and starts is the detection-power study's
 import jax
 import numpy as np
 import pytest
+from helpers import count_traces
 
 import jaxlift as jl
 from jaxlift.calibrate.diagnose import (
     diagnose,
     diagnose_iteratively,
+    refit_free,
     screen_effects,
     switch_parameter,
 )
@@ -88,6 +90,29 @@ def test_switch_parameters():
     assert {switch_parameter(n) for n in jl.EFFECTS} == {
         "dFs", "tau_m", "kappa", "C_L", "alpha0", "C_h", "ks_inv", "tau_d",
     }  # fmt: skip
+
+
+def test_the_screen_compiles_the_residual_function_its_refit_runs():
+    """A screened candidate's confirmation refit calls the residual function that the
+    screen traced and compiled (the same parametrisation): no second compilation of the
+    same model. Two short logs, the dynamic set free; the base fit from nominal."""
+    ts, pwm = ramped_sequence(SECTIONS[:3])  # 16 s
+    plant, _ = jl.with_params(jl.Plant(), (), TRUTH)
+    logs = []
+    for load, seed in ((700.0, 5), (1500.0, 6)):
+        inputs = jl.Inputs.from_arrays(ts, pwm, np.full_like(ts, load), 0.1)
+        sol = jl.simulate(plant, (), inputs, rtol=1e-8, atol=(1e-9, 1e-9, 1e-2))
+        key = jax.random.key(seed)
+        logs.append(jl.to_log(sol, inputs, jl.MeasurementModel(), key, name=f"s{load:.0f}"))
+    base = fit(logs, free="dynamic", n_starts=1, workers=1)
+    with count_traces("_residuals_jit") as screen:
+        (leak,) = screen_effects(base, logs, candidates=["leakage"], free="dynamic", workers=1)
+    assert screen.n == 1 and np.isfinite(leak.z)
+    with count_traces("_residuals_jit") as refit:
+        res = fit(logs, effects=["leakage"], free=refit_free("dynamic"),
+                  init={**base.params, "C_L": 1e-12}, n_starts=1, workers=1)  # fmt: skip
+    assert refit.n == 0
+    assert res.stages[-1].num_steps > 0 and np.isfinite(res.chi2)  # it did step (and call it)
 
 
 @pytest.fixture(scope="module")
