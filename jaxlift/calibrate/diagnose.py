@@ -49,12 +49,11 @@ import numpy as np
 import pandas as pd
 
 from ..analysis.regimes import stage_of
-from ..model.build import all_param_infos, make_effects, model_params, with_params
+from ..model.build import model_params
 from ..model.effects import EFFECTS
 from ..model.log import Log
-from ..model.plant import Plant
-from .experiment import make_experiments, resolve_free
-from .fit import fit, heldout_residuals, log_simulator, offsets_and_chi2n
+from .experiment import make_experiments
+from .fit import fit, fit_problem, heldout_residuals, log_simulator, offsets_and_chi2n
 from .parallel import thread_map
 from .problem import Problem
 from .result import FitResult, pooled_rho1
@@ -224,15 +223,9 @@ def screen_effects(
         # is (its free parameters, in its order): the residual function compiled for
         # the screen is the one the refit calls, not a second compilation of the same
         # model (~4 s each on 2 cores; measured on the shipped logs, 2026-11-29)
-        effs = make_effects([*base.effects, name])
-        infos_e = all_param_infos(effs)
-        own = {k: v for k, v in base.params.items() if k in infos_e}
-        plant_e, effs = with_params(Plant(), effs, {**own, par: step})
-        names = resolve_free(refit_free(free), effs)
-        prob_e = Problem(
-            plant_e, effs, tuple(experiments), tuple(names), tuple(infos_e[n] for n in names)
-        )
-        at = {k: float(v) for k, v in model_params(plant_e, effs).items()}
+        prob_e = fit_problem(experiments, [*base.effects, name], refit_free(free),
+                             {**base.params, par: step})  # fmt: skip
+        at = {k: float(v) for k, v in model_params(prob_e.plant, prob_e.effects).items()}
         try:
             return par, step, prob_e.residuals_at(prob_e.to_theta(at, x0_mm)), None
         except Exception as err:  # noqa: BLE001 -- one candidate's failure, reported

@@ -153,6 +153,23 @@ def _offsets_run(params, effects, logs):
     return (run if np.isfinite(run.chi2) else None), experiments
 
 
+def fit_problem(
+    experiments: Sequence[Experiment],
+    effects: Sequence[str] | str,
+    free: str | Sequence[str],
+    init: Mapping[str, float] | None = None,
+) -> Problem:
+    """The least-squares problem :func:`fit` builds: the model with ``effects`` at
+    ``init`` (others nominal), the parameters ``free`` (:func:`resolve_free`, in its
+    order). The diagnosis's screen builds its candidates' problems here too, so that
+    a candidate and its refit share one compiled residual function."""
+    effs = make_effects(effects)
+    plant, effs = with_params(Plant(), effs, dict(init or {}))
+    names = resolve_free(free, effs)
+    infos = all_param_infos(effs)
+    return Problem(plant, effs, tuple(experiments), tuple(names), tuple(infos[n] for n in names))
+
+
 def fit(
     logs: Sequence[Log] | Sequence[Experiment],
     *,
@@ -243,9 +260,10 @@ def fit(
         if logs and isinstance(logs[0], Experiment)
         else make_experiments(logs, measurement)
     )
-    effs = make_effects(effects)
-    plant0, effs = with_params(Plant(), effs, dict(init or {}))
-    free_all = resolve_free(free, effs)
+    # one problem over all free parameters (one compiled Jacobian); each stage moves
+    # its own columns and the initial-height offsets
+    problem = fit_problem(experiments, effects, free, init)
+    plant0, effs, free_all = problem.plant, problem.effects, list(problem.free)
     infos_all = all_param_infos(effs)
     if staged:
         # each set with the effect parameters that declare it as their stage
@@ -273,11 +291,6 @@ def fit(
     # initial-height offsets [mm], estimated with the rest
     x0_mm = np.array([1e3 * (x0_offsets or {}).get(e.name, 0.0) for e in experiments])
     n_res = sum(e.n_residuals for e in experiments)
-    # one problem over all free parameters (one compiled Jacobian); each stage moves
-    # its own columns and the initial-height offsets
-    problem = Problem(
-        plant0, effs, tuple(experiments), tuple(free_all), tuple(infos_all[n] for n in free_all)
-    )
     final = None
     stage_ends: list[np.ndarray] = []
     for k, names in enumerate(stage_sets):
