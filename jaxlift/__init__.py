@@ -85,7 +85,14 @@ from .model.solution import AbstractSolution, SimulationError, Solution
 from .model.vector_field import plant_signals_and_derivative
 from .posterior.air import AIR_THRESHOLD, air_content, mean_working_pressure
 from .posterior.likelihood import make_log_prob
-from .posterior.moves import AbstractMove, DEMove, DESnookerMove, KDEMove, StretchMove
+from .posterior.moves import (
+    AbstractMove,
+    DEMove,
+    DESnookerMove,
+    KDEMove,
+    LaplaceMove,
+    StretchMove,
+)
 from .posterior.predictive import posterior_draws
 from .posterior.priors import DEFAULT_PRIORS, LogNormal, Uniform
 from .posterior.problem import PosteriorProblem, prepare_posterior
@@ -113,6 +120,7 @@ __all__ = [
     "DEMove",
     "DESnookerMove",
     "KDEMove",
+    "LaplaceMove",
     "StretchMove",
     "TuneRun",
     "calibrated_model",

@@ -104,6 +104,8 @@ def run_case(spec: dict, data: pathlib.Path, out: pathlib.Path, args) -> dict:
                     "--out", str(res_dir / "posterior")]  # fmt: skip
         if args.conditional:
             post_cmd.append("--conditional")
+        if args.move:
+            post_cmd += ["--move", args.move]
         post = subprocess.run(post_cmd, capture_output=True, text=True)
         steps["posterior"] = {
             "rc": post.returncode,
@@ -118,7 +120,11 @@ def run_case(spec: dict, data: pathlib.Path, out: pathlib.Path, args) -> dict:
                 names = ("beta", "cf_con", "d", "cf_out", "cf_in")
                 s = _derived({k: np.asarray(p[k]).ravel() for k in names})
             with open(res_dir / "posterior" / "posterior.json", encoding="utf-8") as fh:
-                result["converged"] = bool(json.load(fh).get("converged"))
+                post_info = json.load(fh)
+            result["converged"] = bool(post_info.get("converged"))
+            result["move"] = post_info.get("move")
+            result["n_walkers"] = post_info.get("n_walkers")
+            result["posterior_steps"] = post_info.get("steps")
             result["targets"] = {}
             for k in TARGETS:
                 row = {"truth": float(t[k]), "pit": float(np.mean(s[k] < t[k]))}
@@ -353,6 +359,9 @@ def main(argv=None) -> int:
     r.add_argument("--max-steps", type=int, default=20_000, help="posterior step limit")
     r.add_argument("--conditional", action="store_true", help="the conditional posterior")
     r.add_argument("--seed", type=int, default=SEED, help="the set of cases (17: the first)")
+    r.add_argument(
+        "--move", default=None, help="the posterior's emcee proposal (default: the command's)"
+    )
     q = sub.add_parser("report")
     q.add_argument(
         "--out",

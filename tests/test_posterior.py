@@ -171,7 +171,7 @@ def test_resume_equals_uninterrupted_and_seeds(problem, log_prob, tmp_path):
     assert chain(tmp_path / "b.h5")[0].shape[0] == 17
     resumed = run(tmp_path / "b.h5", 30)
     assert resumed.resumed_from == 17 and resumed.iteration == 30
-    assert resumed.move == "de-snooker"  # the default
+    assert resumed.move == "de-laplace"  # the default
     (ca, la), (cb, lb) = chain(tmp_path / "a.h5"), chain(tmp_path / "b.h5")
     assert np.array_equal(ca, cb) and np.array_equal(la, lb)  # bit for bit
     run(tmp_path / "c.h5", 30)  # same seed: same numbers
@@ -353,7 +353,7 @@ def test_cli_end_to_end(logs, tmp_path, capsys):
     assert rc == 2 and "n_walkers" in err
     rc = main([*base, "--max-steps", "30", "--move", "stretch"])
     err = capsys.readouterr().err
-    assert rc == 2 and "move: stored 'de-snooker', requested 'stretch'" in err
+    assert rc == 2 and "move: stored 'de-laplace', requested 'stretch'" in err
     # draws of the full parameter set for others (the controller)
     effects, draws = posterior_draws(out, 5, seed=1)
     assert effects == [] and len(draws) == 5

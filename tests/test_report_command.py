@@ -181,6 +181,8 @@ def test_report_from_nominal_on_clean_logs_resumes_without_redoing(tmp_path):
     post = json.loads((tmp_path / "posterior" / "posterior.json").read_text())
     assert FULL.posterior_walkers == budget.posterior_walkers == "auto"
     assert post["n_walkers"] == auto_walkers(len(post["sampled"])) == 16
+    # and its proposal mixes in independence steps from the Laplace approximation
+    assert post["move"] == FULL.posterior_move == budget.posterior_move == "de-laplace"
 
     again = run_report(fit_logs, [held], out_dir=tmp_path, budget=budget)
     assert again["stage_wall_s"] == {"fit": 0.0, "diagnose": 0.0, "posterior": 0.0, "tune": 0.0}

@@ -500,8 +500,9 @@ def _laplace(
     of the nuisances' block. The pseudo-inverse keeps the directions of the scaled
     ``J_phi`` with singular values above :data:`NUISANCE_RCOND` of the largest; the
     others do not move. A direction the data do not constrain (``cf_in`` against
-    ``cf_out``) so starts at the prior's width. The noise factors start with a spread
-    of 2 %. Returns ``(cov_theta, A, nuisance names, nuisance optimum, held
+    ``cf_out``) so starts at the prior's width. A noise factor's variance is that of
+    its log from the AR(1) likelihood, ``1 / (2 N)`` (N innovations of its signal),
+    independent of the rest. Returns ``(cov_theta, A, nuisance names, nuisance optimum, held
     nuisance directions)``."""
     names = problem.names
     phys = [k for k, n in enumerate(names) if n not in NOISE_NAMES]
@@ -570,8 +571,13 @@ def _laplace(
     cov = (v / w) @ v.T
     for j, n in enumerate(names):
         if n in NOISE_NAMES:
+            # a noise factor f multiplies the innovations' scale of one signal in every
+            # log that has it: the information of log f is 2 N (N innovations of that
+            # signal), so its sd is 1 / sqrt(2 N) (0.5 % for two 2-minute logs)
+            k = NOISE_NAMES.index(n)
+            n_k = sum(int(e.y.shape[1]) for e in problem.experiments if k in e.signals)
             cov[j, :] = cov[:, j] = 0.0
-            cov[j, j] = 0.02**2
+            cov[j, j] = 1.0 / (2.0 * max(n_k, 1))
     return 0.5 * (cov + cov.T), a_map, nuis, phi0, held
 
 

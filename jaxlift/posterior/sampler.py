@@ -16,7 +16,7 @@ from jaxtyping import ArrayLike, Float
 from tqdm.auto import tqdm
 
 from .likelihood import EmceeLogProb, make_log_prob
-from .moves import MOVES, AbstractMove, DESnookerMove
+from .moves import MOVES, AbstractMove, DESnookerMove, LaplaceMove
 from .problem import PosteriorProblem
 
 
@@ -53,6 +53,11 @@ class SamplerRun:
     move: str = "stretch"
     n_devices: int = 1
 
+
+#: Stored with every new chain: which snooker update its moves use. Chains without it
+#: that use a snooker move were sampled with emcee's biased one and are not resumed.
+SNOOKER_REVISION = "ter Braak & Vrugt 2008 (jaxlift.posterior.moves.SnookerUpdate)"
+SNOOKER_MOVES = (DESnookerMove.name, LaplaceMove.name)
 
 #: The fewest walkers :func:`auto_walkers` gives.
 MIN_AUTO_WALKERS = 16
@@ -150,7 +155,7 @@ def sample_posterior(
             changed by less than 5 % since the previous check.
         batch: how the log-probability goes over the walkers (:func:`make_log_prob`).
         move: the emcee proposal (:mod:`jaxlift.posterior.moves`; None:
-            ``DESnookerMove()``), stored with the chain by name: a resumed chain must use
+            ``LaplaceMove()``), stored with the chain by name: a resumed chain must use
             the move it was started with.
         devices: devices the walkers are split across (:func:`make_log_prob`).
         log_prob: a ready :func:`make_log_prob` function (saves a compile).
@@ -164,11 +169,11 @@ def sample_posterior(
     ndim = problem.ndim
     if n_walkers < 2 * ndim or n_walkers % 2:
         raise ValueError(f"n_walkers must be even and at least {2 * ndim}, not {n_walkers}")
-    move = DESnookerMove() if move is None else move
+    move = LaplaceMove() if move is None else move
     if not isinstance(move, AbstractMove):
         known = ", ".join(c.__name__ + "()" for c in MOVES.values())
         raise TypeError(f"move must be a jaxlift move ({known}), not {move!r}")
-    moves = move.emcee_moves()
+    moves = move.emcee_moves(problem)
     f = log_prob or make_log_prob(problem, batch=batch, devices=devices)
     lp_fn = EmceeLogProb(f, n_walkers // 2)
     backend = emcee.backends.HDFBackend(os.fspath(chain_path), name="mcmc")
@@ -176,10 +181,18 @@ def sample_posterior(
     if start > 0:
         with backend.open() as fh:  # chains from before the choice: the stretch move
             stored_move = str(fh["mcmc"].attrs.get("jaxlift_move", "stretch"))
+            snooker = str(fh["mcmc"].attrs.get("jaxlift_snooker", ""))
         if stored_move != move.name:
             raise ValueError(
                 f"{chain_path}: the stored chain was run with the {stored_move!r} move, "
                 f"this run asks for {move.name!r}; resume with the same move"
+            )
+        if move.name in SNOOKER_MOVES and snooker != SNOOKER_REVISION:
+            raise ValueError(
+                f"{chain_path}: the stored chain was sampled with emcee's DESnookerMove, "
+                "which does not converge to the posterior (its intervals come out too "
+                "narrow; jaxlift.posterior.moves.SnookerUpdate); delete the file to start "
+                "a new chain"
             )
         if backend.shape != (n_walkers, ndim):
             raise ValueError(
@@ -193,6 +206,7 @@ def sample_posterior(
         backend.reset(n_walkers, ndim)
         with backend.open("a") as fh:
             fh["mcmc"].attrs["jaxlift_move"] = move.name
+            fh["mcmc"].attrs["jaxlift_snooker"] = SNOOKER_REVISION
         coords = _initial_coords(problem, n_walkers, seed, f)
         state = emcee.State(coords, random_state=np.random.RandomState(seed).get_state())
     sampler = emcee.EnsembleSampler(

@@ -19,7 +19,7 @@ from ..model.constants import BETA_OIL
 from ..model.log import Log
 from ..model.params import save_params_json
 from ..posterior.likelihood import cpu_devices
-from ..posterior.moves import AbstractMove, DESnookerMove
+from ..posterior.moves import AbstractMove, LaplaceMove
 from ..posterior.predictive import as_list
 from ..posterior.problem import SETTINGS_FILE, prepare_posterior, problem_from_settings
 from ..posterior.sampler import auto_walkers, sample_posterior
@@ -129,7 +129,7 @@ def run_posterior(
     out.mkdir(parents=True, exist_ok=True)
     chain = out / "chain.h5"
     settings_path = out / SETTINGS_FILE
-    move = DESnookerMove() if move is None else move
+    move = LaplaceMove() if move is None else move
     if not isinstance(move, AbstractMove):  # fails here, before the least squares
         raise TypeError(f"move must be a jaxlift move (jaxlift.posterior.moves), not {move!r}")
     if isinstance(n_walkers, str) and n_walkers != "auto":
