@@ -97,6 +97,9 @@ class AbstractMove(eqx.Module):
     """An emcee proposal with a stable name (stored with the chain)."""
 
     name: ClassVar[str]
+    #: whether its moves include :class:`SnookerUpdate` (chains sampled with emcee's
+    #: biased snooker update are then not resumed)
+    uses_snooker: ClassVar[bool] = False
 
     @abc.abstractmethod
     def emcee_moves(self, problem: PosteriorProblem):
@@ -110,6 +113,7 @@ class DESnookerMove(AbstractMove):
     not sample the posterior (see there)."""
 
     name: ClassVar[str] = "de-snooker"
+    uses_snooker: ClassVar[bool] = True
     de_weight: float = 0.8
 
     def emcee_moves(self, problem):
@@ -173,6 +177,7 @@ class LaplaceMove(AbstractMove):
     """
 
     name: ClassVar[str] = "de-laplace"
+    uses_snooker: ClassVar[bool] = True
     laplace_weight: float = 0.5
     nu: float = 5.0
     scale: float = 1.2

@@ -16,7 +16,7 @@ from jaxtyping import ArrayLike, Float
 from tqdm.auto import tqdm
 
 from .likelihood import EmceeLogProb, make_log_prob
-from .moves import MOVES, AbstractMove, DESnookerMove, LaplaceMove
+from .moves import MOVES, AbstractMove, LaplaceMove
 from .problem import PosteriorProblem
 
 
@@ -57,7 +57,6 @@ class SamplerRun:
 #: Stored with every new chain: which snooker update its moves use. Chains without it
 #: that use a snooker move were sampled with emcee's biased one and are not resumed.
 SNOOKER_REVISION = "ter Braak & Vrugt 2008 (jaxlift.posterior.moves.SnookerUpdate)"
-SNOOKER_MOVES = (DESnookerMove.name, LaplaceMove.name)
 
 #: The fewest walkers :func:`auto_walkers` gives.
 MIN_AUTO_WALKERS = 16
@@ -187,7 +186,7 @@ def sample_posterior(
                 f"{chain_path}: the stored chain was run with the {stored_move!r} move, "
                 f"this run asks for {move.name!r}; resume with the same move"
             )
-        if move.name in SNOOKER_MOVES and snooker != SNOOKER_REVISION:
+        if move.uses_snooker and snooker != SNOOKER_REVISION:
             raise ValueError(
                 f"{chain_path}: the stored chain was sampled with emcee's DESnookerMove, "
                 "which does not converge to the posterior (its intervals come out too "
