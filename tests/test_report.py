@@ -101,6 +101,22 @@ def test_report_is_deterministic_and_links_relative(tmp_path, monkeypatch):
     assert html_text.count("data:image/png;base64,") == 1  # the one that exists: embedded
 
 
+def test_a_long_table_can_be_collapsed_in_html_and_survives_read_and_include(tmp_path):
+    rep = Report("t")
+    rep.table(ROWS, collapsed="every point: **3** rows")
+    rep.table(ROWS[:1])
+    ht = rep.to_html(tmp_path)
+    opened = ht.index("<details><summary>every point: <strong>3</strong> rows</summary>")
+    closed = ht.index("</details>")
+    assert opened < ht.index("<td>slow</td>") < closed  # the collapsed table's rows inside
+    assert ht.count("<details>") == 1  # the other table stays open
+    assert ht.rindex("<table>") > closed
+    assert "| slow | 7596 |" in rep.to_markdown(tmp_path)  # Markdown shows it whole
+    rep.write(tmp_path / "a")
+    outer = Report("outer").include(Report.read(tmp_path / "a"))
+    assert outer.to_html(tmp_path).count("<details><summary>every point") == 1
+
+
 def test_format_value_and_inline_markdown():
     assert format_value(math.nan) == "–"
     assert format_value(None) == ""

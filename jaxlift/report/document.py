@@ -47,6 +47,7 @@ code { background: #f4f4f4; padding: 0 .25em; border-radius: 3px; font-size: 0.9
 figure { margin: 1.2em 0; }
 figure img { max-width: 100%; border: 1px solid #ddd; }
 figcaption { color: #555; font-style: italic; margin-top: .3em; }
+details > summary { cursor: pointer; color: #245; margin: .6em 0; }
 """.strip()
 
 
@@ -156,10 +157,13 @@ class Report:
         columns: Sequence[str] | None = None,
         floatfmt: str = ".3g",
         caption: str | None = None,
+        collapsed: str | None = None,
     ) -> Report:
         """A table of ``rows`` (dicts).  ``columns``: which keys, in order (default: every key,
         in order of first appearance); a missing key gives an empty cell.  Floats are written
-        with ``floatfmt`` (NaN as ``–``); numeric columns are right-aligned."""
+        with ``floatfmt`` (NaN as ``–``); numeric columns are right-aligned.  ``collapsed``:
+        for a long table that few readers need, the line a reader clicks to open it (HTML
+        ``<details>``; the Markdown file shows the table)."""
         rows = [dict(r) for r in rows]
         if columns is None:
             cols: list[str] = []
@@ -177,7 +181,16 @@ class Report:
             for c in cols
         ]
         self._items.append(
-            ("table", {"columns": cols, "cells": cells, "numeric": numeric, "caption": caption})
+            (
+                "table",
+                {
+                    "columns": cols,
+                    "cells": cells,
+                    "numeric": numeric,
+                    "caption": caption,
+                    "collapsed": None if collapsed is None else str(collapsed),
+                },
+            )
         )
         return self
 
@@ -259,6 +272,9 @@ class Report:
                     )
                     t.append(f"<tr>{tds}</tr>")
                 t.append("</tbody></table>")
+                if it.get("collapsed"):  # absent in reports written before it existed
+                    summary = markdown_inline_to_html(it["collapsed"])
+                    t = [f"<details><summary>{summary}</summary>", *t, "</details>"]
                 body.append("\n".join(t))
             elif kind == "figure":
                 # embedded, so that a report mailed to a colleague arrives with its

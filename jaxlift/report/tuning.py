@@ -206,5 +206,6 @@ def robustness_report(
             columns=["form", "noise", "point", "x_m", "v_ref_mps", "u", "sat_gain",
                      "max_real_per_s", "freq_hz", "max_abs_multiplier", "stable"],
             floatfmt=".3g",
+            collapsed=f"every point: {len(rows)} rows (click to open)",
         )  # fmt: skip
     return rep, summary
