@@ -55,6 +55,49 @@ def test_constant_duty_sections_are_positive_and_long_enough():
     assert constant_duty_sections(pwm, DT, min_s=2.0) == [(100, 700), (700, 1000), (1700, 2201)]
 
 
+def _slow_log(sections, name="slow", speed=True):
+    """A log of 2 s at rest, then for each ``(duty, seconds, slipping)`` that duty with
+    slips of 40 mm/s every 0.55 s on a stuck fork (or a steady 30 mm/s), and 3 s at
+    rest after each."""
+    pwm, v = [np.zeros(200)], [np.zeros(200)]
+    for duty, seconds, slipping in sections:
+        n = int(round(seconds / DT))
+        pwm.append(np.full(n, duty))
+        v.append(_pulses(n // 55, 55, 15, 0.04, n) if slipping else np.full(n, 0.03))
+        pwm.append(np.zeros(300))
+        v.append(np.zeros(300))
+    pwm, v = np.concatenate(pwm), np.concatenate(v)
+    return jl.Log(
+        time_s=np.arange(v.size) * DT,
+        pwm=pwm,
+        height_m=np.cumsum(v) * DT,
+        load_kg=np.full(v.size, 800.0),
+        speed_mps=v if speed else None,
+        name=name,
+    )
+
+
+def test_the_revealing_run_of_stick_slip_is_recognised_in_the_logs():
+    """The diagnosis does not ask for a run the logs already hold: slow sections of at
+    least 10 s that stick and slip, at two or more duties."""
+    revealed_in = jl.EFFECTS["stick_slip"].revealed_in
+    seen = revealed_in([_slow_log([(0.13, 15.0, True), (0.14, 15.0, True)])])
+    assert seen.startswith("2 sections that stick and slip: slow at duty 0.13 (")
+    assert "slow at duty 0.14" in seen
+    # split over two logs
+    two = [_slow_log([(0.13, 15.0, True)], "a"), _slow_log([(0.15, 12.0, True)], "b")]
+    assert "a at duty 0.13" in revealed_in(two) and "b at duty 0.15" in revealed_in(two)
+    # not: one duty that slips and one that lifts steadily; one duty twice; sections
+    # shorter than 10 s; no speed column; no effect but stick-slip can tell
+    assert revealed_in([_slow_log([(0.13, 15.0, True), (0.3, 15.0, False)])]) is None
+    assert revealed_in([_slow_log([(0.13, 15.0, True), (0.13, 15.0, True)])]) is None
+    assert revealed_in([_slow_log([(0.13, 8.0, True), (0.14, 8.0, True)])]) is None
+    slow = [_slow_log([(0.13, 15.0, True), (0.14, 15.0, True)], speed=False)]
+    assert revealed_in(slow) is None
+    both = [_slow_log([(0.13, 15.0, True), (0.14, 15.0, True)])]
+    assert all(jl.EFFECTS[n].revealed_in(both) is None for n in jl.EFFECTS if n != "stick_slip")
+
+
 TRUTH = dict(beta=0.75e9, cf_con=12.0, d=300.0)
 # four sections of low, constant duty, 7 s each but the last
 SECTIONS = [(0.0, 1.0), (0.12, 7.0), (0.15, 7.0), (0.0, 1.5), (0.18, 7.0), (0.25, 6.0), (0.0, 1.0)]

@@ -265,6 +265,15 @@ def test_lookahead_does_not_keep_a_stand_in(short_fit, monkeypatch):
     )
     assert dg.final_verdict(steps) == "unexplained" and steps[-1].lookahead == []
     assert sum(run in r for r in steps[-1].reasons) == 1
+    # when the logs already hold that run, it is not asked for again (a circle)
+    cls = jl.EFFECTS["mast_compliance"]
+    monkeypatch.setattr(cls, "revealed_in", classmethod(lambda c, logs: "a hammer test in fit_1"))
+    steps = dg.diagnose_iteratively(logs, base=dataclasses.replace(base, effects=[]))
+    assert dg.final_verdict(steps) == "unexplained"
+    assert not any(run in r for r in steps[-1].reasons)
+    (said,) = [r for r in steps[-1].reasons if "a hammer test in fit_1" in r]
+    assert said.startswith("the candidate that came closest, mast_compliance, removes")
+    assert "already hold the run" in said and "--effects mast_compliance" in said
 
 
 def test_lookahead_says_when_the_provisional_effect_is_dropped_again(short_fit, monkeypatch):

@@ -139,6 +139,14 @@ class AbstractEffect(eqx.Module):
         """
         return []
 
+    @classmethod
+    def revealed_in(cls, logs: Sequence[Log]) -> str | None:
+        """Where ``logs`` already hold the test run of :attr:`revealing_run`: a short
+        description of what shows it (which logs, which sections), or None when they do
+        not, or when the effect cannot tell (the default). The diagnosis then does not
+        ask for a run the user has already made."""
+        return None
+
 
 def rigid_acceleration(plant: Plant, sig: Signals) -> Scalar:
     """Baseline fork-and-load law: ``M a = F - M g`` with ``M = m_load + m_st(x)``."""

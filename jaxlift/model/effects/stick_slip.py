@@ -39,6 +39,9 @@ from .base import AbstractStatelessEffect, Scalar, Signals
 SLIP_SPEED = 0.012
 #: sections of constant, positive duty shorter than this [s] are not used
 MIN_SECTION_S = 5.0
+#: a section of the revealing run (:attr:`StickSlip.revealing_run`: each duty held for
+#: at least 10 s) [s]
+REVEALING_SECTION_S = 10.0
 #: a section "slips" at a rate that gives this many slips in MIN_SECTION_S; with fewer
 #: slips in it, a section's peak speed and duration are not measured (0)
 MIN_SLIPS = 3
@@ -106,6 +109,28 @@ class StickSlip(AbstractStatelessEffect):
         :func:`section_kinds`). None when no log has a speed column, or no section of
         any log slips."""
         return slip_feature_search(logs, params, simulate)
+
+    @classmethod
+    def revealed_in(cls, logs: Sequence[Log]) -> str | None:
+        """The revealing run is there when the logs hold sections of constant duty of
+        at least :data:`REVEALING_SECTION_S` that stick and slip (:func:`section_kinds`:
+        slips by the count, and the fork stuck in between) at two or more different
+        duties."""
+        found = []  # (log name, duty, slips per second)
+        for lg in logs:
+            if lg.speed_mps is None:
+                continue
+            speed, pwm = np.asarray(lg.speed_mps), np.asarray(lg.pwm)
+            secs = constant_duty_sections(pwm, lg.sample_period, REVEALING_SECTION_S)
+            for (a, b), kind in zip(secs, section_kinds(speed, lg.sample_period, secs)):
+                if kind == "slips":
+                    rate = slip_features(speed[a:b], lg.sample_period)[0]
+                    found.append((lg.name, float(pwm[a]), rate))
+        if len({duty for _, duty, _ in found}) < 2:
+            return None
+        return f"{len(found)} sections that stick and slip: " + ", ".join(
+            f"{name} at duty {duty:.3g} ({rate:.2g} slips/s)" for name, duty, rate in found
+        )
 
 
 def slip_features(speed: np.ndarray, dt: float, threshold: float = SLIP_SPEED) -> np.ndarray:
