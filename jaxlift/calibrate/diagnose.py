@@ -907,8 +907,8 @@ def diagnose_iteratively(
                         f"{closest.not_kept}; the fitted logs already hold the run that "
                         f"shows it ({seen}), so it may be there but out of reach of the "
                         "refits from nominal values (a rough least-squares surface: their "
-                        "best fit is not the optimum); compare the model with those "
-                        "sections in the report, or fit the model with it "
+                        "best fit is not the optimum); compare the model with the "
+                        "measurement on those sections, or fit the model with it "
                         f"(`jaxlift fit --effects {closest.effect}`) from starting values "
                         "of your own (`--params`)"
                     )
