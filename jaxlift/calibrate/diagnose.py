@@ -896,15 +896,12 @@ def diagnose_iteratively(
                 # unexplained again, the refits from nominal values out of the optimum's
                 # reach)
                 seen = EFFECTS[closest.effect].revealed_in(logs)
+                said = f"the candidate that came closest, {closest.effect}, {closest.not_kept}; "
                 if seen is None:
-                    last.reasons.append(
-                        f"the candidate that came closest, {closest.effect}, "
-                        f"{closest.not_kept}; a run that would show whether it is there: {run}"
-                    )
+                    last.reasons.append(said + f"a run that would show whether it is there: {run}")
                 else:
                     last.reasons.append(
-                        f"the candidate that came closest, {closest.effect}, "
-                        f"{closest.not_kept}; the fitted logs already hold the run that "
+                        said + "the fitted logs already hold the run that "
                         f"shows it ({seen}), so it may be there but out of reach of the "
                         "refits from nominal values (a rough least-squares surface: their "
                         "best fit is not the optimum); compare the model with the "
