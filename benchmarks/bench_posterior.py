@@ -23,8 +23,9 @@ its first JAX operation), as ``jaxlift posterior`` does.
     default ``jax.lax.map`` inside one ``jit``; ``vmap`` for comparison), on one device
     and split across all devices (``shard_map``), against a Python loop calling the
     jitted single-walker function on each walker. Target: the batch >= 10x the loop.
-(b) Wall time until the chain is longer than 50 integrated autocorrelation times, 32
-    walkers, the default move. ``--quick``: a short chain (``--quick-steps``, default
+(b) Wall time until the chain is longer than 50 integrated autocorrelation times, the
+    command's default ensemble (``auto``: 16 walkers for the five parameters;
+    ``--walkers N``), the default move. ``--quick``: a short chain (``--quick-steps``, default
     300) gives the time per step and a tau estimate; the time to 50 tau is
     *extrapolated* (and tau from a short chain is an underestimate). Without
     ``--quick`` the real run goes until converged or ``--full-steps`` (default 6000).
@@ -57,7 +58,7 @@ import jaxlift as jl
 from jaxlift.posterior.likelihood import make_log_prob
 from jaxlift.posterior.moves import DEFAULT_MOVE, MOVES
 from jaxlift.posterior.problem import prepare_posterior
-from jaxlift.posterior.sampler import sample_posterior
+from jaxlift.posterior.sampler import auto_walkers, sample_posterior
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -117,14 +118,17 @@ def bench_log_prob(problem, rounds: int = 5) -> dict:
     return out
 
 
-def bench_chain(problem, steps: int, quick: bool, move: str = DEFAULT_MOVE) -> dict:
+def bench_chain(
+    problem, steps: int, quick: bool, move: str = DEFAULT_MOVE, walkers: int | None = None
+) -> dict:
     f = make_log_prob(problem)
     f(np.repeat(problem.theta_opt[None], 16, axis=0))  # compile outside the timing
     with tempfile.TemporaryDirectory() as d:
         t0 = time.perf_counter()
         run = sample_posterior(
-            problem, Path(d) / "chain.h5", n_walkers=32, max_steps=steps, seed=0, chunk=50,
-            log_prob=f, progress=True, move=MOVES[move](), tau_factor=1e9 if quick else 50.0,
+            problem, Path(d) / "chain.h5", n_walkers=walkers or auto_walkers(problem.ndim),
+            max_steps=steps, seed=0, chunk=50, log_prob=f, progress=True, move=MOVES[move](),
+            tau_factor=1e9 if quick else 50.0,
         )  # fmt: skip
         wall = time.perf_counter() - t0
     per_step = wall / max(run.iteration, 1)
@@ -147,6 +151,10 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="extrapolate the time to 50 tau")
     ap.add_argument("--quick-steps", type=int, default=300)
     ap.add_argument("--full-steps", type=int, default=6000)
+    ap.add_argument(
+        "--walkers", type=int, default=None,
+        help="(b)'s ensemble (default: auto, as `jaxlift posterior`: 16 for 5 parameters)",
+    )  # fmt: skip
     ap.add_argument(
         "--compare-moves",
         type=int,
@@ -218,8 +226,9 @@ def main() -> int:
     say("")
     steps = args.quick_steps if args.quick else args.full_steps
     kind = "EXTRAPOLATED from a short chain" if args.quick else "measured"
-    say(f"## (b) wall time to 50 tau, 32 walkers, default move ({DEFAULT_MOVE}) ({kind})")
-    ch = bench_chain(problem, steps, args.quick)
+    nw = args.walkers or auto_walkers(problem.ndim)
+    say(f"## (b) wall time to 50 tau, {nw} walkers, default move ({DEFAULT_MOVE}) ({kind})")
+    ch = bench_chain(problem, steps, args.quick, walkers=nw)
     say(
         f"  {ch['steps']} steps in {ch['wall_s']:.0f} s: {ch['per_step_s']:.2f} s per step; "
         f"acceptance {ch['acceptance']:.2f}"
@@ -264,7 +273,11 @@ def main() -> int:
         res = json.loads((Path(args.from_run) / "posterior.json").read_text())
         tau = max(v for v in res["tau"].values())
         say("")
-        say(f"## (b') measured: `jaxlift posterior` run in {args.from_run} (32 walkers)")
+        say(
+            f"## (b') measured: `jaxlift posterior` run in {args.from_run} "
+            f"({res.get('n_walkers', 32)} walkers, {res.get('move', '?')} move, "
+            f"{res.get('move_settings', {})})"
+        )
         steps_run = res["steps"] - res["resumed_from"]
         timing = (
             f"{steps_run} steps in {res['wall_s_this_run'] / 60:.1f} min of sampling "

@@ -138,10 +138,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--walkers",
         type=_walkers,
-        default=32,
-        help="number of walkers (even, at least twice the sampled parameters; default 32), "
-        "or auto: 2 x parameters + 4, at least 16, a multiple of 4 (what `jaxlift report` "
-        "uses: the chain is as long in steps, with fewer effective samples, ~47 per walker)",
+        default="auto",
+        help="number of walkers (even, at least twice the sampled parameters), or auto "
+        "(the default since 2026-12-01; 32 before): 2 x parameters + 4, at least 16, a "
+        "multiple of 4, as `jaxlift report` uses (the chain is about as long in steps as "
+        "with more walkers, with fewer effective samples, ~47 per walker: 680-1100 for "
+        "the shipped logs' five parameters with 16). A chain started with another number "
+        "resumes only with that number",
     )
     p.add_argument("--max-steps", type=int, default=20_000, help="step limit (default 20000)")
     p.add_argument("--seed", type=int, default=0, help="seed of walkers and sampler")
@@ -171,7 +174,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help=f"emcee proposal (default {DEFAULT_MOVE}: differential evolution mixed with "
         "independence proposals from the Laplace approximation, about 4x shorter "
         "autocorrelation times than de-snooker where the posterior is close to Gaussian "
-        "(the shipped logs' model: tau 7 against 31 steps); de-snooker: differential "
+        "(the shipped logs' model: tau 7 against 31 steps), with the share of "
+        "independence steps chosen before sampling from how well that proposal covers "
+        "the posterior (0.05 where it does not); de-snooker: differential "
         "evolution with snooker updates, about 3x shorter than stretch, emcee's default; "
         "kde: can strand walkers; docs/statistics.md, Sampler); a chain resumes with the "
         "move it was started with",

@@ -5,6 +5,7 @@ convergence rule (chain longer than 50 autocorrelation times).
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import time
@@ -37,6 +38,9 @@ class SamplerRun:
         tau_history: ``(iteration, max tau)`` at each check.
         move: the name of the emcee proposal (:data:`~jaxlift.posterior.moves.MOVES`).
         n_devices: devices the walkers were split across.
+        move_settings: what the move chose before sampling
+            (:meth:`~jaxlift.posterior.moves.AbstractMove.settings`; de-laplace: its
+            independence weight and the check it came from).
     """
 
     path: str
@@ -52,6 +56,7 @@ class SamplerRun:
     n_walkers: int
     move: str = "stretch"
     n_devices: int = 1
+    move_settings: dict = dataclasses.field(default_factory=dict)
 
 
 #: Stored with every new chain: which snooker update its moves use. Chains without it
@@ -172,7 +177,6 @@ def sample_posterior(
     if not isinstance(move, AbstractMove):
         known = ", ".join(c.__name__ + "()" for c in MOVES.values())
         raise TypeError(f"move must be a jaxlift move ({known}), not {move!r}")
-    moves = move.emcee_moves(problem)
     f = log_prob or make_log_prob(problem, batch=batch, devices=devices)
     lp_fn = EmceeLogProb(f, n_walkers // 2)
     backend = emcee.backends.HDFBackend(os.fspath(chain_path), name="mcmc")
@@ -181,6 +185,7 @@ def sample_posterior(
         with backend.open() as fh:  # chains from before the choice: the stretch move
             stored_move = str(fh["mcmc"].attrs.get("jaxlift_move", "stretch"))
             snooker = str(fh["mcmc"].attrs.get("jaxlift_snooker", ""))
+            stored_settings = json.loads(str(fh["mcmc"].attrs.get("jaxlift_move_settings", "{}")))
         if stored_move != move.name:
             raise ValueError(
                 f"{chain_path}: the stored chain was run with the {stored_move!r} move, "
@@ -201,13 +206,19 @@ def sample_posterior(
         state = backend.get_last_sample()  # coords, log_prob and emcee's random state
         if state.random_state is None:
             raise ValueError(f"{chain_path}: the chain has no stored random state")
+        move = move.with_settings(stored_settings)
     else:
+        # choices the move makes before sampling (de-laplace: its independence weight,
+        # from a seeded check of its proposal), made once and stored with the chain
+        move = move.settle(problem, lp_fn, seed)
         backend.reset(n_walkers, ndim)
         with backend.open("a") as fh:
             fh["mcmc"].attrs["jaxlift_move"] = move.name
             fh["mcmc"].attrs["jaxlift_snooker"] = SNOOKER_REVISION
+            fh["mcmc"].attrs["jaxlift_move_settings"] = json.dumps(move.settings())
         coords = _initial_coords(problem, n_walkers, seed, f)
         state = emcee.State(coords, random_state=np.random.RandomState(seed).get_state())
+    moves = move.emcee_moves(problem)
     sampler = emcee.EnsembleSampler(
         n_walkers, ndim, lp_fn, vectorize=True, backend=backend, moves=moves
     )
@@ -251,6 +262,7 @@ def sample_posterior(
         n_walkers=n_walkers,
         move=move.name,
         n_devices=getattr(f, "n_devices", 1),
+        move_settings=move.settings(),
     )
 
 

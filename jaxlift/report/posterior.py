@@ -170,6 +170,7 @@ def write_outputs(
         "n_draws": int(flat.shape[0]),
         "wall_s_this_run": run.wall_s,
         "move": run.move,
+        "move_settings": run.move_settings,
         "n_walkers": run.n_walkers,
         "n_devices_this_run": run.n_devices,
         "summary": rows,
@@ -200,6 +201,19 @@ def _jsonable(x):
     return x
 
 
+def _move_note(settings: dict) -> str:
+    """The move's choices before sampling, as the report says them ('' without any)."""
+    if "laplace_weight" not in settings:
+        return ""
+    note = f" with independence steps at {settings['laplace_weight']:.2g}"
+    if settings.get("pareto_khat") is not None:
+        note += (
+            f", chosen from its proposal's Pareto k-hat {settings['pareto_khat']:.2f} and "
+            f"relative ESS {settings['ess_fraction']:.2f}"
+        )
+    return note
+
+
 def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
     rep = Report("jaxlift posterior: how sure are we?")
     conv = (
@@ -213,7 +227,7 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
     rep.text(
         f"Logs: {', '.join(f'`{lg.name}`' for lg in logs)}. Model: baseline"
         f"{''.join(' + ' + e for e in problem.effects)}. Sampled (emcee ensemble sampler, "
-        f"{run.move} move, "
+        f"{run.move} move{_move_note(run.move_settings)}, "
         f"{run.tau.size} coordinates): {', '.join(f'`{n}`' for n in problem.names)}. "
         f"Chain: {conv}."
     )

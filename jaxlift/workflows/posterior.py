@@ -86,7 +86,7 @@ def run_posterior(
     likelihood: str = "ar1",
     sample_noise: bool = False,
     conditioning: str = "marginal",
-    n_walkers: int | str = 32,
+    n_walkers: int | str = "auto",
     max_steps: int = 20_000,
     seed: int = 0,
     chunk: int = 50,
@@ -118,8 +118,9 @@ def run_posterior(
     (default: the motor set and the initial-height offsets move with the sampled
     parameters, :func:`~jaxlift.posterior.problem.prepare_posterior`) or
     ``"conditional"`` (held at their least-squares values). ``n_walkers``: the
-    ensemble size, or ``"auto"`` (:func:`~jaxlift.posterior.sampler.auto_walkers` of the
-    number of sampled parameters: 20 for the report's eight; the chain's length in steps
+    ensemble size, or ``"auto"`` (the default since 2026-12-01, 32 before:
+    :func:`~jaxlift.posterior.sampler.auto_walkers` of the number of sampled parameters:
+    16 for the default five, 20 for the report's eight; the chain's length in steps
     does not depend on it, its number of effective samples does). Returns a
     :class:`PosteriorResult` (the content of ``posterior.json``, read like a dict, and
     the ArviZ DataTree)."""
