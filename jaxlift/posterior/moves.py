@@ -247,7 +247,8 @@ class LaplaceMove(AbstractMove):
             raise ValueError("the weight is chosen by settle(), which has not run")
         out = {"laplace_weight": float(self.laplace_weight)}
         if self.pareto_khat is not None:
-            out |= {"pareto_khat": float(self.pareto_khat), "ess_fraction": self.ess_fraction}
+            out |= {"pareto_khat": float(self.pareto_khat),
+                    "ess_fraction": float(self.ess_fraction)}  # fmt: skip
         return out
 
     def with_settings(self, stored):
@@ -298,10 +299,10 @@ def laplace_coverage(
     rng = np.random.default_rng([int(seed), 1])
     # the proposal's draws from emcee's RandomState interface, seeded from rng
     rs = np.random.RandomState(rng.integers(0, 2**31 - 1))
-    draws, _ = propose(np.tile(problem.theta_opt, (n_draws, 1)), rs)
-    z = (draws - problem.theta_opt) @ _whitener(problem.cov_theta, scale).T
-    log_q = -0.5 * (nu + draws.shape[1]) * np.log1p(np.sum(z * z, axis=-1) / nu)
-    lw = np.asarray(log_prob(draws), dtype=np.float64) - log_q
+    # proposing from the centre, the proposal's own factor log q(centre) - log q(new)
+    # is -log q(new) (log q is 0 at the centre, up to the constant that cancels)
+    draws, factor = propose(np.tile(problem.theta_opt, (n_draws, 1)), rs)
+    lw = np.asarray(log_prob(draws), dtype=np.float64) + factor
     finite = np.isfinite(lw)
     if finite.sum() < n_draws / 4:
         return math.inf, 0.0
@@ -346,12 +347,6 @@ def independence_weight(khat: float, ess: float) -> float:
     if np.isnan(khat) or khat >= KHAT_BAD:
         return WEIGHT_LEAST
     return float(np.clip(2.0 * ess - 0.1, WEIGHT_LEAST, WEIGHT_GOOD))
-
-
-def _whitener(cov, scale: float) -> np.ndarray:
-    """The matrix that maps ``x - mean`` to the t proposal's whitened coordinates."""
-    w, v = np.linalg.eigh(0.5 * (np.asarray(cov) + np.asarray(cov).T))
-    return (v / (scale * np.sqrt(w))).T
 
 
 def _t_proposal(mean, cov, nu: float, scale: float):
