@@ -203,6 +203,9 @@ def run_diagnose(
                 f"changes by only {dbic:+.1f} (< 10): {d.verdict} explains what {name} "
                 f"did, so {name} is dropped again."
             )
+        if d.reasons and d.verdict not in ("none", "undecided", "unexplained"):
+            # a winner the held-out logs decided, or one the lookahead kept: why
+            rep.text(f"Why {d.verdict}: " + "; ".join(d.reasons) + ".")
         rep.text(
             f"chi2/N of the fitted model {d.base_chi2 / d.n_residuals:.3g}; residual "
             f"autocorrelation inflates variances by {d.inflation:.1f} (so the tests count "
@@ -225,7 +228,9 @@ def run_diagnose(
             caption="Ranking: confirmed candidates by BIC change (negative = better), then "
             "the others by score. Verdict = largest BIC drop beyond 10 whose held-out "
             "chi2 also falls by more than 10 (effective samples) and, where the error is "
-            "far above the noise, that removes at least 25 % of it.",
+            "far above the noise, that removes at least 25 % of it; two within 10 of each "
+            "other on the fitted logs are decided by adding the held-out logs' evidence "
+            "(their chi2 change, in effective samples), or left undecided.",
         )
     # where the final model's error remains: per regime and per stage, each log
     rep.heading("Where the error remains")
