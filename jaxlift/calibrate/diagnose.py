@@ -689,8 +689,9 @@ def decide(
     threshold, the better one is the verdict and the reasons say that the held-out
     logs decided. (Measured, detection study case_014: after hose compliance, a 13 ms
     input delay and a 13 ms motor lag 1.4 apart in BIC on the fitted logs; the held-out
-    log, 22 776 residuals, preferred the delay, the truth, by 185: 186.7 in all.) A decision the
-    fitted logs make alone is never overturned: they are what the refits minimised."""
+    log, 22 776 residuals, preferred the delay, the truth, by 185: 186.7 in all.) A
+    decision the fitted logs make alone is never overturned: they are what the refits
+    minimised."""
     ranked = sorted(passing, key=lambda s: s.delta_bic)
     if not ranked:
         return "none", [], []
