@@ -340,3 +340,26 @@ def test_lookahead_says_when_the_provisional_effect_is_dropped_again(short_fit, 
     assert "dropped" in steps[0].reasons[0] and "kept because" not in steps[0].reasons[0]
     kept = [v for v in dg.found_effects(steps) if not any(v in d.dropped for d in steps)]
     assert kept == ["stick_slip"]
+
+
+def test_the_report_says_why_a_step_named_its_effect(short_fit, monkeypatch, tmp_path):
+    """A named step with reasons (the held-out logs decided, or the lookahead kept it)
+    has them in the diagnosis report, under that step."""
+    from jaxlift.workflows import diagnose as wd
+
+    logs, base = short_fit
+    base = dataclasses.replace(base, effects=[])
+    hose = dataclasses.replace(
+        base, effects=["hose_compliance"], params={**base.params, "C_h": 1e-13}
+    )
+    why = "hose_compliance decided by the held-out logs: on the fitted logs ..."
+    named = dg.Diagnosis("hose_compliance", [], [], base.chi2, base.n_residuals, 1.0, base,
+                         hose, reasons=[why])  # fmt: skip
+    last = dg.Diagnosis("none", [], ["hose_compliance"], hose.chi2, hose.n_residuals, 1.0,
+                        hose, None)  # fmt: skip
+    monkeypatch.setattr(wd, "diagnose_iteratively", lambda *a, **k: [named, last])
+    wd.run_diagnose(logs, out_dir=tmp_path, shape="never")
+    text = (tmp_path / "report.md").read_text(encoding="utf-8")
+    step = text.index("Step 1: model = baseline; verdict: hose_compliance")
+    assert text.index(f"Why hose_compliance: {why}.") > step
+    assert "Why none" not in text
