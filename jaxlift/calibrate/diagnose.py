@@ -429,8 +429,7 @@ def diagnose(
             held_ok = (
                 s.heldout_chi2_after is None
                 or s.heldout_chi2_before is None
-                or (s.heldout_chi2_after - s.heldout_chi2_before) * n_held / base.inflation
-                < -bic_threshold
+                or _held_out_change(s, n_held, base.inflation) < -bic_threshold
             )
             s.explained_share = (base.chi2 - best.chi2) / excess if excess > 0 else None
             # material: when the error is far above the noise, a candidate must remove a
@@ -735,6 +734,13 @@ def held_out_evidence(s: EffectScreen, n_held: int, inflation: float) -> float |
         return None
     if not (math.isfinite(s.heldout_chi2_before) and math.isfinite(s.heldout_chi2_after)):
         return None
+    return _held_out_change(s, n_held, inflation)
+
+
+def _held_out_change(s: EffectScreen, n_held: int, inflation: float) -> float:
+    """``(after - before) * n_held / inflation`` of the held-out chi2 per sample, in
+    effective samples. A failed held-out simulation is an infinite chi2: with the effect,
+    +inf or NaN, so the held-out check fails; without it only, -inf."""
     return (s.heldout_chi2_after - s.heldout_chi2_before) * n_held / inflation
 
 
