@@ -243,6 +243,32 @@ def test_damped_passes_move_a_log_whose_gauss_newton_steps_are_all_rejected(monk
     assert lg.chi2n_after == pytest.approx(lg.chi2n_before)
 
 
+def test_steps_that_each_raise_the_misfit_a_little_do_not_add_up(monkeypatch):
+    """A step may raise a log's chi2/N by 1 % (the smoother trades misfit for
+    smoothness), but not 1 % per pass on top of the last: measured on the quadratic drag
+    of test_unexplained, chi2/N climbed from 1.33 to 1.41 over 13 passes. Forced here:
+    the undamped smoother's step is replaced by one that adds 3 N of force each pass, on
+    a log with nothing missing. Each such step raises chi2/N by less than 1 % of the
+    last pass's (so the old rule accepted all 15, ending at 1.10); the fit may end at
+    most 1 % above the lowest it reached."""
+    from jaxlift.calibrate import shape as shape_mod
+
+    smooth = shape_mod._smooth
+
+    def creeping_step(*args):
+        ll, w, sd, de0, chi2 = smooth(*args)
+        if args[8].shape[0] == args[6].shape[0] and args[6].shape[0] < args[6].shape[1]:
+            wbar = np.asarray(args[3])  # undamped: 3 N more force than now, everywhere
+            return ll, wbar + np.array([3.0, 0.0]), sd, 0.0 * de0, chi2
+        return ll, w, sd, de0, chi2
+
+    monkeypatch.setattr(shape_mod, "_smooth", creeping_step)
+    made = _log(None, 400.0, 1, 0.3, "thesis-like", "null_creep")
+    (lg,) = jl.estimate_missing_shape(_truth(), [made[0]]).logs
+    assert lg.chi2n_before < 1.01
+    assert lg.chi2n_after <= lg.chi2n_before * 1.01 + 1e-3, (lg.chi2n_before, lg.chi2n_after)
+
+
 def test_without_a_pressure_sensor_a_signal_not_needed_is_held_at_zero():
     """A log without pressure: a free flow and a free force could trade along what the
     log cannot see (a straight-line flow drifts the pressure, the force makes up for
