@@ -156,22 +156,53 @@ def test_section_kinds_count_slips_only_where_the_fork_stops():
     assert section_kinds(speed, DT, sections) == ["slips", "ignored", "still"]
 
 
-def test_a_long_section_that_slips_slowly_slips():
-    """Slips by the count are also at least MIN_SLIPS in a long section, at a rate
-    below MIN_SLIPS per MIN_SECTION_S, if they peak at REAL_SLIP_PEAK or more. Before,
-    such a section read ``still`` and the search asked the model not to slip there,
-    charging the truth for its own slips (measured, coverage case_015: 9 slips at 50
-    mm/s in 18 s; the search ended at 18.7 mm/s for a truth of 28.6, the refit at
-    chi2/N 4.88). Stray crossings of a fork moving just below SLIP_SPEED, which peak a
-    few mm/s above it, still do not count."""
-    # 5 slips of 50 mm/s in 18 s (0.28 /s: 1.4 in MIN_SECTION_S) from a stuck fork
-    slow = _pulses(5, 350, 15, 0.05, 1800)
-    # 5 crossings to 15 mm/s in 18 s on a fork otherwise stuck
-    stray = _pulses(5, 350, 15, 0.015, 1800)
-    speed = np.concatenate([slow, stray])
-    sections = [(0, 1800), (1800, 3600)]
-    assert slip_features(slow, DT)[0] * MIN_SECTION_S < MIN_SLIPS
-    assert section_kinds(speed, DT, sections) == ["slips", "still"]
+def test_a_long_section_that_slips_slowly_is_matched_in_one_reading(monkeypatch):
+    """At least MIN_SLIPS slips in a section, but fewer than MIN_SLIPS per
+    MIN_SECTION_S, reads ``few``: it may be a slow stick-slip or a lift whose noisy
+    speed dips below SLIP_SPEED now and then, so the search's first reading matches its
+    slips and the second leaves it out. Before, it read ``still`` and the model was
+    asked not to slip there, which charged the truth of a slow stick-slip for its own
+    slips (measured, coverage case_015: 9 slips at 50 mm/s in 18 s; jaxlift fit from
+    nominal values ended at chi2/N 5.57 and 3.74 for the noise floor's 1)."""
+    import types
+
+    import jaxlift.model.effects.stick_slip as ss
+
+    fast = _pulses(6, 90, 15, 0.04, 600)  # 6 slips in 6 s: slips
+    slow = _pulses(5, 350, 15, 0.05, 1800)  # 5 slips in 18 s (1.4 per 5 s): few
+    two = _pulses(2, 350, 15, 0.05, 1800)  # 2 slips: too few to measure, still
+    gap = np.zeros(100)
+    speed = np.concatenate([gap, fast, gap, slow, gap, two, gap])
+    pwm = np.concatenate([gap, np.full(600, 0.1), gap, np.full(1800, 0.12), gap,
+                          np.full(1800, 0.14), gap])  # fmt: skip
+    t = np.arange(speed.size) * DT
+    log = jl.Log(t, pwm, np.zeros_like(t), np.full_like(t, 500.0), speed_mps=speed)
+    sections = constant_duty_sections(log.pwm, DT)
+    assert slip_features(slow, DT)[0] * MIN_SECTION_S < MIN_SLIPS <= 5
+    assert section_kinds(speed, DT, sections) == ["slips", "few", "still"]
+    asked = {"fast": [], "slow": [], "two": []}  # per section: matched (True) or not
+    cost = ss.section_cost
+
+    def recording(measured, simulated, slips):
+        rate = measured[0]
+        name = {1.0: "fast", 5 / 18.0: "slow", 2 / 18.0: "two"}
+        asked[next(v for k, v in name.items() if rate == pytest.approx(k))].append(slips)
+        return cost(measured, simulated, slips)
+
+    monkeypatch.setattr(ss, "section_cost", recording)
+    sol = types.SimpleNamespace(speed=speed)  # a model that reproduces the log
+    starts = ss.slip_feature_search([log], {"beta": 0.8e9}, lambda values: [sol])
+    assert len(starts) >= 1
+    # two readings: the fast section matched in both, the slow one in the first only
+    # (left out of the second), the one with two slips asked for none in both
+    assert set(asked["fast"]) == {True} and set(asked["slow"]) == {True}
+    assert len(asked["fast"]) > len(asked["slow"]) > 0
+    assert set(asked["two"]) == {False} and len(asked["two"]) == len(asked["fast"])
+    # without a section that slips by the count, "few" alone starts no search
+    lone = jl.Log(t[: 1800 + 200], pwm[700 : 700 + 2000], np.zeros(2000), np.full(2000, 500.0),
+                  speed_mps=speed[700 : 700 + 2000])  # fmt: skip
+    assert section_kinds(lone.speed_mps, DT, constant_duty_sections(lone.pwm, DT)) == ["few"]
+    assert ss.slip_feature_search([lone], {"beta": 0.8e9}, lambda values: [sol]) == []
 
 
 def test_no_start_without_slips_or_without_a_speed_column():

@@ -55,12 +55,11 @@ STUCK_SPEED = 0.006
 #: 126 to 8 744) had a share of 0.00-0.02, every other one 0.06 or more.
 MIN_STUCK_SHARE = 0.05
 #: how the search's readings (:func:`slip_feature_search`) take each kind of section
-#: (:func:`section_kinds`): matched as ``"slips"``, asked for none as ``"still"``, or
-#: left out as ``"ignored"``; kinds not named are taken as they are
+#: (:func:`section_kinds`): matched as ``"slips"``, or left out as ``"ignored"``;
+#: kinds not named are taken as they are
 READINGS = (
     {"few": "slips", "ignored": "slips"},
-    {"few": "still", "ignored": "slips"},
-    {"few": "still"},
+    {"few": "ignored"},
 )
 #: relative errors the features are weighed by: rate, peak speed, duration
 FEATURE_REL = np.array([0.03, 0.03, 0.10])
@@ -179,22 +178,22 @@ def section_kinds(speed: np.ndarray, dt: float, sections) -> list[str]:
     """What each section ``(a, b)`` of a log's speed [m/s] asks of the model in the
     search: ``"slips"`` (match its features: at least :data:`MIN_SLIPS` slips in
     :data:`MIN_SECTION_S`, and the fork stuck in at least :data:`MIN_STUCK_SHARE` of
-    it), ``"still"`` (no slips to measure: the model should not slip either),
-    ``"few"`` (at least :data:`MIN_SLIPS` slips, but fewer in :data:`MIN_SECTION_S`;
-    read both ways) or ``"ignored"`` (slips by the count, but the fork never stops: a
-    lift at the edge between sliding and stick-slip, or moving at around
-    :data:`SLIP_SPEED` with its noisy speed crossing it again and again; left out of
-    the last reading of :func:`slip_feature_search`).
+    it), ``"still"`` (fewer than :data:`MIN_SLIPS` slips in all: the model should not
+    slip either), ``"ignored"`` (slips by the count, but the fork never stops: a lift
+    at the edge between sliding and stick-slip, or moving at around :data:`SLIP_SPEED`
+    with its noisy speed crossing it again and again) or ``"few"`` (at least
+    :data:`MIN_SLIPS` slips, but fewer in :data:`MIN_SECTION_S`). The first reading of
+    :func:`slip_feature_search` matches the last two as slips, the second leaves them
+    out.
 
     Why ``"few"``: such a section may be a slow stick-slip or a lift at about 20 mm/s
     whose noisy speed dips below :data:`SLIP_SPEED` now and then (measured on the
-    studies' fitted logs: such sections in 59 of 154 cases, all but 5 of those without
-    stick-slip), so the search reads it both ways (:data:`READINGS`). Read only as
-    ``"still"``, it charged a slow stick-slip's truth for its own slips (measured,
-    coverage case_015: 279 N at 28.6 mm/s; an 18 s section with 9 slips peaking at
-    50 mm/s cost the truth 24 of its 28.7, the search ended at 18.7 mm/s and the refit
-    from there at chi2/N 4.88; matched, the search ended at 277 N, 25 mm/s and the refit
-    reached 0.99).
+    studies' fitted logs: such sections in 79 of 154 cases, 73 of them without
+    stick-slip), so it is read as uncertain, like ``"ignored"``. Read as ``"still"``, as
+    before, it charged a slow stick-slip's truth for its own slips (measured, coverage
+    set 18's case_015: 279 N at 28.6 mm/s; an 18 s section with 9 slips peaking at
+    50 mm/s cost the truth 24 of its 28.7, and ``jaxlift fit`` from nominal values
+    ended at chi2/N 5.57 and 3.74; read as uncertain, 0.986 and 0.997).
     """
     kinds = []
     for a, b in sections:
@@ -236,21 +235,18 @@ def slip_feature_search(
     """:meth:`StickSlip.starts_from_logs` (a function, for studies). Logs without a
     speed column are left out (their solutions too).
 
-    None unless some section slips by the count (``"slips"`` or ``"ignored"``). Up to
-    three starts, from the readings of the logs in :data:`READINGS` that differ and
-    match some slips: every section with slips (``"few"`` by :func:`section_kinds`
-    too) matched; every section with slips by the count matched; then, if some of those
-    sections never see the fork stop (``"ignored"``) and others do, only the latter. Why
-    the first: a slow stick-slip may slip fewer than :data:`MIN_SLIPS` times in
-    :data:`MIN_SECTION_S` (see :func:`section_kinds`; coverage case_015's start came
-    from it). Why the last two: where the fork never stops, the lift is at the edge
+    None unless some section slips by the count (``"slips"`` or ``"ignored"`` by
+    :func:`section_kinds`; ``"few"`` alone may be noise). Up to two starts, from the two
+    readings of the logs in :data:`READINGS`: every section with slips matched (the
+    ``"few"`` too); then, if some of them are ``"ignored"`` or ``"few"`` and others are
+    not, only the latter. Why both: where the fork never stops, the lift is at the edge
     between sliding and stick-slip, and the slips' features there depend on every detail
     of the model. A model that is exact matches them, and they then tell the breakaway
     force from the Stribeck speed (tests/test_slip_starts.py: 150 N at 11 mm/s is found
     only with them); against logs of another simulator at the true parameters they
     missed by a cost of up to 8 744 and led the search into another basin (detection
     case_089: 897 N read as 197 N, found only without them; studies/DETECTION.md,
-    fifteenth sitting). The least-squares refits from all of them decide."""
+    fifteenth sitting). The least-squares refits from both decide."""
     used = [k for k, lg in enumerate(logs) if lg.speed_mps is not None]
     secs = {k: constant_duty_sections(np.asarray(logs[k].pwm), logs[k].sample_period) for k in used}
     measured = {
