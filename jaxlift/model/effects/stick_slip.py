@@ -259,7 +259,8 @@ def slip_feature_search(
     }
     readings = []
     # a section with slips by the count is needed: "few" alone may be noise (see
-    # section_kinds), and the logs of most lifts without stick-slip have one
+    # section_kinds; half the studies' cases have a "few" section, most without
+    # stick-slip)
     by_count = {"slips", "ignored"} & set(itertools.chain(*kinds.values()))
     for read in READINGS if by_count else ():
         reading = {k: [read.get(x, x) for x in ks] for k, ks in kinds.items()}
