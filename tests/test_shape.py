@@ -211,6 +211,12 @@ def test_nothing_missing_needs_no_signal_and_no_jumps():
         assert lg.chi2n_before < 1.1 and abs(lg.chi2n_after - lg.chi2n_before) < 0.05
 
 
+def _undamped(args) -> bool:
+    """Whether the smoother's arguments are an undamped pass's: R covers only the
+    measured rows (a damped pass adds the states and signals as pseudo-measurements)."""
+    return args[8].shape[0] == args[6].shape[0] and args[6].shape[0] < args[6].shape[1]
+
+
 def test_damped_passes_move_a_log_whose_gauss_newton_steps_are_all_rejected(monkeypatch):
     """Where the linearisation is poor (measured: a large duty saturation, one log
     stalled at chi2/N 180), every Gauss--Newton step, halved four times, makes the fit
@@ -224,7 +230,7 @@ def test_damped_passes_move_a_log_whose_gauss_newton_steps_are_all_rejected(monk
 
     def reversed_step(*args):
         ll, w, sd, de0, chi2 = smooth(*args)
-        if args[8].shape[0] == args[6].shape[0] and args[6].shape[0] < args[6].shape[1]:
+        if _undamped(args):
             # undamped (R covers only the measured rows): reverse the step, x20
             wbar = args[3]
             return ll, wbar - 20.0 * (w - wbar), sd, -20.0 * de0, chi2
@@ -257,7 +263,7 @@ def test_steps_that_each_raise_the_misfit_a_little_do_not_add_up(monkeypatch):
 
     def creeping_step(*args):
         ll, w, sd, de0, chi2 = smooth(*args)
-        if args[8].shape[0] == args[6].shape[0] and args[6].shape[0] < args[6].shape[1]:
+        if _undamped(args):
             wbar = np.asarray(args[3])  # undamped: 3 N more force than now, everywhere
             return ll, wbar + np.array([3.0, 0.0]), sd, 0.0 * de0, chi2
         return ll, w, sd, de0, chi2
