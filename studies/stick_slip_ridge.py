@@ -68,35 +68,12 @@ CHANGES = {
 
 
 def features_cost(logs, run):
-    """The search's features cost of its first reading (``READINGS[0]``)."""
-    secs = [ss.constant_duty_sections(np.asarray(lg.pwm), lg.sample_period) for lg in logs]
-    meas = [
-        [ss.slip_features(np.asarray(lg.speed_mps)[a:b], lg.sample_period) for a, b in s]
-        for lg, s in zip(logs, secs)
-    ]
-    kinds = [
-        [
-            ss.READINGS[0].get(k, k)
-            for k in ss.section_kinds(np.asarray(lg.speed_mps), lg.sample_period, s)
-        ]
-        for lg, s in zip(logs, secs)
-    ]
-
-    def cost(values):
-        sols = run(values)
-        if sols is None:
-            return math.inf
-        c = 0.0
-        for lg, sol, s, m, ks in zip(logs, sols, secs, meas, kinds):
-            v = np.asarray(sol.speed)
-            for (a, b), f, kind in zip(s, m, ks):
-                if kind != "ignored":
-                    c += ss.section_cost(
-                        f, ss.slip_features(v[a:b], lg.sample_period), kind == "slips"
-                    )
-        return c
-
-    return cost, sum(k == "slips" for ks in kinds for k in ks)
+    """The search's features cost in its first reading (``READINGS[0]``), and the number
+    of sections that reading matches as slipping."""
+    objective, kinds = ss.features_objective(logs, run)
+    reading = {k: [ss.READINGS[0].get(x, x) for x in ks] for k, ks in kinds.items()}
+    n_slipping = sum(x == "slips" for xs in reading.values() for x in xs)
+    return (lambda values: objective(values, reading)), n_slipping
 
 
 def ridge(cost, guess):

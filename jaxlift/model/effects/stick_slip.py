@@ -227,6 +227,44 @@ def constant_duty_sections(pwm: np.ndarray, dt: float, min_s: float = MIN_SECTIO
     return out
 
 
+def features_objective(
+    logs: Sequence[Log],
+    simulate: Callable[[Mapping[str, float]], Sequence[Solution] | None],
+) -> tuple[Callable[[Mapping[str, float], Mapping[int, Sequence[str]]], float], dict]:
+    """The slip-feature search's objective (:func:`slip_feature_search`; for studies).
+
+    Returns ``(cost, kinds)``: ``kinds`` maps the index of each log with a speed column
+    to the :func:`section_kinds` of its constant-duty sections; ``cost(values,
+    reading)`` simulates ``values`` and sums :func:`section_cost` over the sections,
+    each taken as ``reading`` says (``kinds`` mapped through one of :data:`READINGS`;
+    ``"ignored"`` sections are left out); inf if the simulation fails."""
+    used = [k for k, lg in enumerate(logs) if lg.speed_mps is not None]
+    secs = {k: constant_duty_sections(np.asarray(logs[k].pwm), logs[k].sample_period) for k in used}
+    measured = {
+        k: [slip_features(np.asarray(logs[k].speed_mps)[a:b], logs[k].sample_period) for a, b in ss]
+        for k, ss in secs.items()
+    }
+    kinds = {
+        k: section_kinds(np.asarray(logs[k].speed_mps), logs[k].sample_period, ss)
+        for k, ss in secs.items()
+    }
+
+    def cost(values: Mapping[str, float], reading: Mapping[int, Sequence[str]]) -> float:
+        sols = simulate(values)
+        if sols is None:
+            return math.inf
+        c = 0.0
+        for k in used:
+            v, dt = np.asarray(sols[k].speed), logs[k].sample_period
+            for (a, b), f, kind in zip(secs[k], measured[k], reading[k]):
+                if kind == "ignored":
+                    continue
+                c += section_cost(f, slip_features(v[a:b], dt), kind == "slips")
+        return c
+
+    return cost, kinds
+
+
 def slip_feature_search(
     logs: Sequence[Log],
     params: Mapping[str, float],
@@ -247,16 +285,7 @@ def slip_feature_search(
     missed by a cost of up to 8 744 and led the search into another basin (detection
     case_089: 897 N read as 197 N, found only without them; studies/DETECTION.md,
     fifteenth sitting). The least-squares refits from both decide."""
-    used = [k for k, lg in enumerate(logs) if lg.speed_mps is not None]
-    secs = {k: constant_duty_sections(np.asarray(logs[k].pwm), logs[k].sample_period) for k in used}
-    measured = {
-        k: [slip_features(np.asarray(logs[k].speed_mps)[a:b], logs[k].sample_period) for a, b in ss]
-        for k, ss in secs.items()
-    }
-    kinds = {
-        k: section_kinds(np.asarray(logs[k].speed_mps), logs[k].sample_period, ss)
-        for k, ss in secs.items()
-    }
+    objective, kinds = features_objective(logs, simulate)
     readings = []
     # a section with slips by the count is needed: "few" alone may be noise (see
     # section_kinds; half the studies' cases have a "few" section, most without
@@ -273,17 +302,7 @@ def slip_feature_search(
     }
 
     def cost(values: Mapping[str, float], reading) -> float:
-        sols = simulate({**start, **values})
-        if sols is None:
-            return math.inf
-        c = 0.0
-        for k in used:
-            v, dt = np.asarray(sols[k].speed), logs[k].sample_period
-            for (a, b), f, kind in zip(secs[k], measured[k], reading[k]):
-                if kind == "ignored":
-                    continue
-                c += section_cost(f, slip_features(v[a:b], dt), kind == "slips")
-        return c
+        return objective({**start, **values}, reading)
 
     starts: list[dict[str, float]] = []
     for reading in readings:
