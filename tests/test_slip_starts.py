@@ -222,7 +222,8 @@ def test_the_ridge_starts_follow_the_line_of_equal_slip_features():
     def speed(values):
         rate = 1.0 * values["dFs"] * values["v_s"] / (600.0 * 0.008)  # slips per second
         peak = 0.04 * (values["v_s"] / 0.008) ** 0.5
-        return np.concatenate([gap, _pulses(n // 100, int(round(100 / rate)), 15, peak, n), gap])
+        count = max(1, int(round(rate * n * DT)))  # over the 60 s, evenly spaced
+        return np.concatenate([gap, _pulses(count, n // count, 15, peak, n), gap])
 
     truth = {"dFs": 600.0, "v_s": 0.008}
     v = speed(truth)
