@@ -79,7 +79,7 @@ def run_case(spec: dict, data: pathlib.Path, out: pathlib.Path, args) -> dict:
     res_dir.mkdir(parents=True, exist_ok=True)
     logs = [str(case / "fit_1.csv"), str(case / "fit_2.csv")]
     eff = ["--effects", ",".join(spec["hidden_effects"])] if spec["hidden_effects"] else []
-    jl = [sys.executable, "-m", "jaxlift"]
+    jl = [sys.executable, "-P", "-m", "jaxlift"]  # -P: see detection_power.py
     t0 = time.perf_counter()
     steps = {}
     params = res_dir / "fit" / "params.json"

@@ -65,10 +65,13 @@ def run_case(
     t0 = time.perf_counter()
     # one process per case, as a user runs it: a long-lived process that diagnoses case
     # after case keeps every compiled model (each log length is a new shape) and ran out
-    # of memory after 6 cases (LLVM "Cannot allocate memory", 24 GiB)
+    # of memory after 6 cases (LLVM "Cannot allocate memory", 24 GiB). ``-P``: the
+    # working directory is not put before PYTHONPATH, so that a frozen worktree on it is
+    # what the case imports also when the study runs from the repository's root (without
+    # it the checkout there won: studies/DETECTION.md, twenty-ninth sitting)
     try:
         proc = subprocess.run(
-            [sys.executable, "-m", "jaxlift", *argv],
+            [sys.executable, "-P", "-m", "jaxlift", *argv],
             capture_output=True, text=True, check=False, timeout=time_limit,
         )  # fmt: skip
         rc, crash = proc.returncode, None
@@ -116,7 +119,9 @@ def _jaxlift_commit() -> str:
     """The git commit of the jaxlift that the cases' processes import (the study can run
     from a frozen worktree on PYTHONPATH while development goes on)."""
     code = "import jaxlift, pathlib; print(pathlib.Path(jaxlift.__file__).parent)"
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    proc = subprocess.run(
+        [sys.executable, "-P", "-c", code], capture_output=True, text=True, check=False
+    )
     where = proc.stdout.strip() or "."
     rev = subprocess.run(["git", "-C", where, "rev-parse", "--short", "HEAD"],
                          capture_output=True, text=True, check=False)  # fmt: skip

@@ -205,7 +205,7 @@ def run_case(case: dict, out: pathlib.Path, time_limit: float) -> dict:
     if (case_dir / "result.json").exists():
         return json.loads((case_dir / "result.json").read_text())
     write_case(case, case_dir)
-    argv = [sys.executable, "-m", "jaxlift", "diagnose", str(case_dir / "fit_1.csv"),
+    argv = [sys.executable, "-P", "-m", "jaxlift", "diagnose", str(case_dir / "fit_1.csv"),
             str(case_dir / "fit_2.csv"), "--validate", str(case_dir / "validation.csv"),
             "--shape", "always", "--out", str(case_dir / "diagnosis")]  # fmt: skip
     t0 = time.perf_counter()

@@ -1,5 +1,5 @@
 """Experiment: refits from points along the ridge of equal slip features
-(studies/DETECTION.md, twenty-eighth sitting; not in the library).
+(studies/DETECTION.md, twenty-eighth sitting).
 
 Where the fitted logs slip in one section of constant duty only, its three features
 (slips per second, median peak speed, median duration) do not fix the breakaway force
@@ -10,11 +10,12 @@ within a few per cent of it. This script:
 
 1. fits the baseline (no effect) from nominal values, as the diagnosis does;
 2. runs the library's search and takes its first start;
-3. walks the ridge through it: for each Stribeck speed of a ladder of 13 rungs over
-   2-30 mm/s (ratio 1.25), outwards both ways, the breakaway force that matches the
-   features best (bounded Brent on its log, within a factor 1.6 of the neighbour's;
-   the other parameters at the start's), until a rung's features cost exceeds the
-   start's by 9;
+3. walks the ridge through it (``jaxlift.model.effects.stick_slip.ridge_starts``,
+   since the twenty-ninth sitting in the library): for each Stribeck speed of a ladder
+   of 13 rungs over 2-30 mm/s (ratio 1.25), outwards both ways, the breakaway force
+   that matches the features best (bounded Brent on its log, within a factor 1.6 of
+   the neighbour's; the other parameters at the start's), until a rung's features cost
+   exceeds the start's by 9;
 4. refits every parameter from the search's start and from each rung (one start each,
    as the diagnosis's confirmation refits), and prints each refit's chi2/N on the
    fitted logs and on the held-out log (``validation.csv``).
@@ -39,7 +40,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import pathlib
 import time
 
@@ -47,16 +47,12 @@ import jax
 
 jax.config.update("jax_enable_x64", True)  # a program's start: the place to do it
 
-import numpy as np  # noqa: E402
-import scipy.optimize as so  # noqa: E402
 
 from jaxlift.calibrate.diagnose import _heldout_chi2  # noqa: E402
 from jaxlift.calibrate.fit import fit, log_simulator, offsets_and_chi2n  # noqa: E402
 from jaxlift.model.effects import stick_slip as ss  # noqa: E402
 from jaxlift.model.log import read_log  # noqa: E402
 
-LADDER = np.geomspace(0.002, 0.03, 13)  # Stribeck speeds [m/s]
-TOL, FACTOR, EVALS = 9.0, 1.6, 15
 # case_093's best refit (the run without --at-truth): d 78 N*s/m, v_s 7.97 mm/s, dFs 600.9 N
 CHANGES = {
     "truth": {},
@@ -74,25 +70,6 @@ def features_cost(logs, run):
     reading = {k: [ss.READINGS[0].get(x, x) for x in ks] for k, ks in kinds.items()}
     n_slipping = sum(x == "slips" for xs in reading.values() for x in xs)
     return (lambda values: objective(values, reading)), n_slipping
-
-
-def ridge(cost, guess):
-    at_guess, out = cost(guess), []
-    half = math.sqrt(LADDER[1] / LADDER[0])
-    for way in ([v for v in LADDER if v > guess["v_s"] * half],
-                [v for v in LADDER[::-1] if v < guess["v_s"] / half]):  # fmt: skip
-        log_dfs = math.log(guess["dFs"])
-        for vs in way:
-            res = so.minimize_scalar(
-                lambda lf, vs=vs: cost({**guess, "v_s": float(vs), "dFs": math.exp(lf)}),
-                bounds=(log_dfs - math.log(FACTOR), log_dfs + math.log(FACTOR)),
-                method="bounded", options=dict(xatol=0.005, maxiter=EVALS),
-            )  # fmt: skip
-            if not (math.isfinite(res.fun) and res.fun <= at_guess + TOL):
-                break
-            log_dfs = float(res.x)
-            out.append({**guess, "v_s": float(vs), "dFs": math.exp(log_dfs)})
-    return sorted(out, key=lambda st: st["v_s"])
 
 
 def main() -> None:
@@ -127,7 +104,7 @@ def main() -> None:
         return
     cost, n_slipping = features_cost(logs, run)
     print(f"sections matched as slipping in the first reading: {n_slipping}")
-    starts, refits = [found[0], *ridge(cost, found[0])], []
+    starts, refits = [found[0], *ss.ridge_starts(logs, run, found[0])], []
     for st in starts:
         t = time.perf_counter()
         r = fit(logs, effects=["stick_slip"], free="all,effects", init={**base.params, **st},

@@ -205,6 +205,53 @@ def test_a_long_section_that_slips_slowly_is_matched_in_one_reading(monkeypatch)
     assert ss.slip_feature_search([lone], {"beta": 0.8e9}, lambda values: [sol]) == []
 
 
+def test_the_ridge_starts_follow_the_line_of_equal_slip_features():
+    """Where one section slips, its features fix a line in (``dFs``, ``v_s``), not a
+    point; ``ridge_starts`` walks that line through the search's start, rung by rung of
+    ``RIDGE_VS``, and stops where the features fit worse than at the start by more than
+    ``RIDGE_TOL``. A stand-in simulator whose slip rate depends on ``dFs * v_s`` only
+    and whose peak speed grows with ``v_s``: the rungs lie on the line (``dFs v_s`` of
+    the truth, 600 N at 8 mm/s), are contiguous in ``RIDGE_VS``, include the one next
+    to the truth, and end where the peak speed is off by over 30 %."""
+    import types
+
+    import jaxlift.model.effects.stick_slip as ss
+
+    n, gap = 6000, np.zeros(100)  # 60 s of constant duty between 1 s at rest
+
+    def speed(values):
+        rate = 1.0 * values["dFs"] * values["v_s"] / (600.0 * 0.008)  # slips per second
+        peak = 0.04 * (values["v_s"] / 0.008) ** 0.5
+        count = max(1, int(round(rate * n * DT)))  # over the 60 s, evenly spaced
+        return np.concatenate([gap, _pulses(count, n // count, 15, peak, n), gap])
+
+    truth = {"dFs": 600.0, "v_s": 0.008}
+    v = speed(truth)
+    t = np.arange(v.size) * DT
+    pwm = np.concatenate([gap, np.full(n, 0.1), gap])
+    log = jl.Log(t, pwm, np.cumsum(v) * DT, np.full_like(t, 500.0), speed_mps=v)
+    assert section_kinds(v, DT, constant_duty_sections(pwm, DT)) == ["slips"]
+    start = {"dFs": 600.0 * 0.008 / 0.0045, "v_s": 0.0045, "d": 300.0}  # on the line
+
+    def simulate(values):
+        return [types.SimpleNamespace(speed=speed(values))]
+
+    rungs = ss.ridge_starts([log], simulate, start)
+    vs = [r["v_s"] for r in rungs]
+    assert vs == sorted(vs) and len(vs) >= 3, rungs
+    k0 = ss.RIDGE_VS.index(vs[0])
+    assert vs == list(ss.RIDGE_VS[k0 : k0 + len(vs)])  # contiguous
+    assert any(abs(x / 0.008 - 1) < 0.05 for x in vs)  # the rung next to the truth
+    for r in rungs:
+        assert r["dFs"] * r["v_s"] == pytest.approx(4.8, rel=0.05), r
+        assert r["d"] == 300.0  # the rest as at the start
+    # the walk stopped inside the ladder, where the peak speed is off by over 30 %
+    assert ss.RIDGE_VS[0] < vs[0] and vs[-1] < ss.RIDGE_VS[-1]
+    assert all(0.7 < (x / 0.008) ** 0.5 < 1.3 for x in vs)
+    # the search's own start is not among the rungs (it is refitted anyway)
+    assert all(abs(x / start["v_s"] - 1) > 0.1 for x in vs)
+
+
 def test_no_start_without_slips_or_without_a_speed_column():
     # no stick-slip: lifts at 32-60 mm/s, no slips to match (a lift from rest at
     # 17 mm/s does cross 12 mm/s in its first oscillations: see the test above)

@@ -363,3 +363,145 @@ def test_the_report_says_why_a_step_named_its_effect(short_fit, monkeypatch, tmp
     step = text.index("Step 1: model = baseline; verdict: hose_compliance")
     assert text.index(f"Why hose_compliance: {why}.") > step
     assert "Why none" not in text
+
+
+def test_left_out_predictions_pass_only_far_better_on_every_log():
+    """The decision of the cross-validation on its predictions (name, chi2/N without
+    and with the candidate, residuals): each left-out log predicted better by more
+    than the threshold in effective samples and at least half of its error above the
+    noise removed. Detection case_093's numbers (601 N breakaway, one slipping
+    section: 5.651 -> 1.125 and 5.969 -> 1.684) pass; a 13 % improvement does not, nor
+    a failed fit, nor a change below the threshold."""
+    case_093 = [("fit_1", 5.651, 1.125, 6000), ("fit_2", 5.969, 1.684, 6000)]
+    ok, parts = dg.left_out_predictions(case_093, inflation=20.0)
+    assert ok and parts == [
+        "fit_1 predicted at chi2/N 5.65 -> 1.12",
+        "fit_2 predicted at chi2/N 5.97 -> 1.68",
+    ]
+    # 13 % of the error removed on one log: far past the threshold, not enough
+    ok, _ = dg.left_out_predictions([case_093[0], ("fit_2", 5.969, 5.32, 6000)], 20.0)
+    assert not ok
+    # a failed fit (None) or a non-finite prediction: not passed, and said so
+    for bad in (None, math.inf, math.nan):
+        ok, parts = dg.left_out_predictions([case_093[0], ("fit_2", 5.969, bad, 6000)], 20.0)
+        assert not ok and parts[1] == "fit_2: a fit failed"
+    # removes 60 % of a small error on a short, strongly correlated log: (1.2 - 1.5) *
+    # 300 / 20 = -4.5 effective samples, below the threshold of 10 (above one of 2)
+    assert not dg.left_out_predictions([("fit_1", 1.5, 1.2, 300)], 20.0)[0]
+    assert dg.left_out_predictions([("fit_1", 1.5, 1.2, 300)], 20.0, bic_threshold=2.0)[0]
+    assert not dg.left_out_predictions([], 20.0)[0]  # nothing to judge
+
+
+def _held_out_short(effect="hose_compliance"):
+    """A candidate that removed most of the fitted logs' error but made the held-out
+    logs worse (Diagnosis.partial)."""
+    s = EffectScreen(effect, dg.switch_parameter(effect), 5.0, 1e-7, 100.0, 1e-10)
+    s.delta_bic, s.explained_share = -400.0, 0.97
+    s.heldout_chi2_before, s.heldout_chi2_after = 2.0, 2.1
+    s.not_kept = "makes the held-out logs worse (chi2/N 2 -> 2.1)"
+    return s
+
+
+@pytest.mark.parametrize(
+    "refit_share, predicted_with, kept",
+    [(0.97, 1.125, True), (0.97, 5.05, False), (0.2, 1.125, False)],
+)
+def test_cross_validation_keeps_a_candidate_that_predicts_each_left_out_log(
+    short_fit, monkeypatch, refit_share, predicted_with, kept
+):
+    """``cross_validate``: a candidate whose refit removes nearly all of the fitted
+    logs' error (97 %) is fitted on the other logs with the held-out ones and must
+    predict each left-out log far better than the model without it (5.65 -> 1.125:
+    kept; -> 5.05, 13 % of the error: not); one that removes 20 % (a stand-in for a
+    law outside the eight) is not cross-validated at all, no fit is run."""
+    (log,), base = short_fit
+    logs = [dataclasses.replace(log, name=f"fit_{k}") for k in (1, 2)]
+    held = [dataclasses.replace(log, name="validation")]
+    n = base.n_residuals
+    base = dataclasses.replace(base, chi2=3.0 * n, effects=[])
+    s = _held_out_short()
+    best = dataclasses.replace(
+        base, chi2=base.chi2 - refit_share * 2.0 * n, effects=["hose_compliance"],
+        params={**base.params, "C_h": 1e-10},
+    )  # fmt: skip
+    step = dg.Diagnosis("none", [s], [], base.chi2, n, base.inflation, base, None)
+    step.partial = [(s, best)]
+    fits = []
+
+    def fake_fit(train, *, effects, init, **kw):
+        fits.append(([lg.name for lg in train], list(effects)))
+        return dataclasses.replace(base, effects=list(effects), params=dict(init))
+
+    def predicted(params, effects, out):
+        return predicted_with if effects else 5.65
+
+    monkeypatch.setattr(dg, "fit", fake_fit)
+    monkeypatch.setattr(dg, "_heldout_chi2", predicted)
+    found = dg.cross_validate(step, logs, held, workers=1)
+    assert (found is not None) == kept, step.cross_validation
+    (said,) = step.cross_validation
+    if refit_share < dg.CV_SHARE:
+        assert fits == [] and "not cross-validated" in said and "20%" in said
+        return
+    # each fitted log left out in turn, with and without the candidate
+    assert sorted(fits) == sorted(
+        [(["fit_2", "validation"], e) for e in ([], ["hose_compliance"])]
+        + [(["fit_1", "validation"], e) for e in ([], ["hose_compliance"])]
+    )
+    assert "fit_1 predicted at chi2/N 5.65 -> " in said
+    if kept:
+        s0, fit0 = found
+        assert s0 is s and fit0 is best and "kept" in said
+        assert s.explained_share == pytest.approx(0.97) and s.delta_bic < -10
+    else:
+        assert "not kept" in said
+
+
+def test_an_ending_unexplained_gets_the_cross_validation(short_fit, monkeypatch):
+    """diagnose_iteratively: where the last step finds nothing it keeps, a candidate one
+    test short (held-out) and a significant misfit, the cross-validation decides; if it
+    keeps the candidate, it is named with its reason; if not, what it found is among
+    the reasons of the ending ``unexplained``; with ``cross_validation=False`` it is not
+    run."""
+    (log,), base = short_fit
+    logs = [dataclasses.replace(log, name=f"fit_{k}") for k in (1, 2)]
+    held = [dataclasses.replace(log, name="validation")]
+    base = dataclasses.replace(base, effects=[])
+    with_it = dataclasses.replace(base, effects=["hose_compliance"])
+
+    def scripted(logs_, validate_logs=(), *, base_effects=(), base=None, **kw):
+        d = dg.Diagnosis("none", [], [], 1.0, 1, 1.0, base, None)
+        d.partial = [(_held_out_short(), with_it)]
+        return d
+
+    def misfit(m, usable=()):
+        floor = bool(m.effects)
+        return dg.RemainingMisfit(1.0 if floor else 3.5, 1000, 1.0, 0.0 if floor else 50.0,
+                                  None, 0, None, None, not floor)  # fmt: skip
+
+    calls = []
+
+    def cv(step, *a, **k):
+        calls.append(step)
+        step.cross_validation.append("hose_compliance: cross-validated, " + outcome)
+        return (step.partial[0][0], with_it) if outcome == "kept" else None
+
+    monkeypatch.setattr(dg, "diagnose", scripted)
+    monkeypatch.setattr(dg, "remaining_misfit", misfit)
+    monkeypatch.setattr(dg, "cross_validate", cv)
+    for outcome in ("kept", "not kept"):
+        steps = dg.diagnose_iteratively(logs, held, base=base, lookahead=False)
+        reasons = steps[-1].reasons
+        if outcome == "kept":
+            assert dg.found_effects(steps) == ["hose_compliance"]
+            assert dg.final_verdict(steps) == "none"
+            assert reasons == ["hose_compliance: cross-validated, kept"]
+        else:
+            assert dg.final_verdict(steps) == "unexplained" and dg.found_effects(steps) == []
+            assert "hose_compliance: cross-validated, not kept" in reasons
+    assert len(calls) == 2
+    steps = dg.diagnose_iteratively(logs, held, base=base, lookahead=False, cross_validation=False)
+    assert dg.final_verdict(steps) == "unexplained" and len(calls) == 2
+    # without held-out logs there is nothing to cross-validate with
+    steps = dg.diagnose_iteratively(logs, [], base=base, lookahead=False)
+    assert dg.final_verdict(steps) == "unexplained" and len(calls) == 2

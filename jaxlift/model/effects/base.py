@@ -140,6 +140,20 @@ class AbstractEffect(eqx.Module):
         return []
 
     @classmethod
+    def more_starts_from_logs(
+        cls,
+        logs: Sequence[Log],
+        params: Mapping[str, float],
+        simulate: Callable[[Mapping[str, float]], Sequence[Solution] | None],
+    ) -> list[dict[str, float]]:
+        """Further starts for a second look at this effect, read from the logs
+        (arguments as :meth:`starts_from_logs`): where the diagnosis would end
+        ``unexplained`` and this effect came closest but failed the held-out check, it
+        refits from these too before it cross-validates
+        (:func:`jaxlift.calibrate.diagnose.cross_validate`). None by default."""
+        return []
+
+    @classmethod
     def revealed_in(cls, logs: Sequence[Log]) -> str | None:
         """Where ``logs`` already hold the test run of :attr:`revealing_run`: a short
         description of what shows it (which logs, which sections), or None when they do

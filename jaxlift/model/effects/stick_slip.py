@@ -71,6 +71,12 @@ VS_GRID = (0.002, 0.003, 0.0045, 0.007, 0.01, 0.015, 0.02)
 #: parameters the Nelder--Mead refinement moves (log scale), and its budget
 SEARCHED = ("dFs", "v_s", "d", "cf_con", "beta")
 MAX_EVALS = 150
+#: the ridge of equal slip features (:func:`ridge_starts`): Stribeck speeds [m/s] of its
+#: rungs; how much worse than the search's start a rung may match the features (cost
+#: units) before the walk stops; how far from its neighbour's a rung's breakaway force
+#: may be (factor); the evaluations of the one-dimensional search per rung
+RIDGE_VS = tuple(float(v) for v in np.geomspace(0.002, 0.03, 13))
+RIDGE_TOL, RIDGE_FACTOR, RIDGE_EVALS = 9.0, 1.6, 15
 
 
 class StickSlip(AbstractStatelessEffect):
@@ -116,6 +122,20 @@ class StickSlip(AbstractStatelessEffect):
         :func:`section_kinds`). None when no log has a speed column, or no section of
         any log slips."""
         return slip_feature_search(logs, params, simulate)
+
+    @classmethod
+    def more_starts_from_logs(
+        cls,
+        logs: Sequence[Log],
+        params: Mapping[str, float],
+        simulate: Callable[[Mapping[str, float]], Sequence[Solution] | None],
+    ) -> list[dict[str, float]]:
+        """The rungs of the ridge of equal slip features through the search's first
+        start (:func:`ridge_starts`): where one section slips, its features fix only a
+        line in (``dFs``, ``v_s``), and a refit reaches the optimum only from a start
+        within a few per cent of it (studies/DETECTION.md, twenty-eighth sitting)."""
+        found = slip_feature_search(logs, params, simulate)
+        return ridge_starts(logs, simulate, found[0]) if found else []
 
     @classmethod
     def revealed_in(cls, logs: Sequence[Log]) -> str | None:
@@ -323,3 +343,43 @@ def slip_feature_search(
         if guess not in starts:
             starts.append(guess)
     return starts
+
+
+def ridge_starts(
+    logs: Sequence[Log],
+    simulate: Callable[[Mapping[str, float]], Sequence[Solution] | None],
+    start: Mapping[str, float],
+) -> list[dict[str, float]]:
+    """Points along the ridge of equal slip features through ``start`` (a start of
+    :func:`slip_feature_search`), by Stribeck speed.
+
+    For each Stribeck speed of :data:`RIDGE_VS`, outwards from ``start``'s both ways,
+    the breakaway force that matches the features best in the search's first reading
+    (bounded Brent on its log, within :data:`RIDGE_FACTOR` of the neighbour's, the
+    other parameters at ``start``'s); the walk stops where a rung
+    matches them worse than ``start`` by more than :data:`RIDGE_TOL`. Measured on
+    detection case_093 (601 N at 8.3 mm/s): the search's start refits to chi2/N 1.81,
+    the rung at 7.75 mm/s to 1.002 (studies/stick_slip_ridge.py)."""
+    objective, kinds = features_objective(logs, simulate)
+    reading = {k: [READINGS[0].get(x, x) for x in ks] for k, ks in kinds.items()}
+
+    def cost(values: Mapping[str, float]) -> float:
+        return objective(values, reading)  # ``simulate`` updates ``params`` by them
+
+    at_start, out = cost(start), []
+    half = math.sqrt(RIDGE_VS[1] / RIDGE_VS[0])
+    up = [v for v in RIDGE_VS if v > start["v_s"] * half]
+    down = [v for v in RIDGE_VS[::-1] if v < start["v_s"] / half]
+    for way in (up, down):
+        log_dfs = math.log(start["dFs"])
+        for vs in way:
+            res = so.minimize_scalar(
+                lambda lf, vs=vs: cost({**start, "v_s": vs, "dFs": math.exp(lf)}),
+                bounds=(log_dfs - math.log(RIDGE_FACTOR), log_dfs + math.log(RIDGE_FACTOR)),
+                method="bounded", options=dict(xatol=0.005, maxiter=RIDGE_EVALS),
+            )  # fmt: skip
+            if not (math.isfinite(res.fun) and res.fun <= at_start + RIDGE_TOL):
+                break
+            log_dfs = float(res.x)
+            out.append({**start, "v_s": float(vs), "dFs": math.exp(log_dfs)})
+    return sorted(out, key=lambda st: st["v_s"])
