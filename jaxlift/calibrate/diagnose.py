@@ -1078,16 +1078,23 @@ def cross_validate(
     say = progress or (lambda _s: None)
     base = step.base_fit
     n_held = sum(e.n_residuals for e in make_experiments(validate_logs))
-    failed_held = [
-        (s, f)
-        for s, f in step.partial
-        if (h := held_out_evidence(s, n_held, base.inflation)) is not None and h >= -bic_threshold
-    ]
-    if not failed_held:
+    s, best = next(
+        (
+            (s, f)
+            for s, f in step.partial
+            if (h := held_out_evidence(s, n_held, base.inflation)) is not None
+            and h >= -bic_threshold
+        ),
+        (None, None),
+    )
+    if s is None:
         return None
-    s, best = failed_held[0]
     effects = [*base.effects, s.effect]
-    note = step.cross_validation.append
+
+    def note(line: str) -> None:  # what was found, kept in the step and reported
+        step.cross_validation.append(line)
+        say("cross-validation: " + line)
+
     try:
         run = log_simulator(base.params, effects, logs)
         starts = EFFECTS[s.effect].more_starts_from_logs(logs, base.params, run)
@@ -1107,7 +1114,6 @@ def cross_validate(
                 f"{s.effect}: its best refit removes {share:.0%} of the fitted logs' error "
                 f"(cross-validated from {CV_SHARE:.0%}): not cross-validated"
             )
-            say("cross-validation: " + step.cross_validation[-1])
             return None
         jobs = []
         for i, out in enumerate(logs):
@@ -1131,7 +1137,6 @@ def cross_validate(
         predicted = list(thread_map(predict, jobs, workers))
     except Exception as err:  # noqa: BLE001 -- the check fails, the diagnosis goes on
         note(f"{s.effect}: the cross-validation failed ({type(err).__name__}: {err})")
-        say("cross-validation: " + step.cross_validation[-1])
         return None
     outs = [jobs[k][1] for k in range(0, len(jobs), 2)]
     ok, parts = left_out_predictions(
@@ -1151,13 +1156,11 @@ def cross_validate(
     )
     if not ok:
         note(summary + f": not kept (needs {CV_PREDICT_SHARE:.0%} of each left-out log's error)")
-        say("cross-validation: " + step.cross_validation[-1])
         return None
     note(
         summary + ": kept, its values are not determined by the fitted logs alone (fit the "
         "model with it on every log to fix them)"
     )
-    say("cross-validation: " + step.cross_validation[-1])
     infos = EFFECTS[s.effect].param_infos()
     s.confirmed_chi2 = best.chi2
     s.delta_bic = _bic(best.chi2, len(best.free), best.n_residuals, base.inflation) - _bic(
