@@ -324,17 +324,10 @@ def fit(
             starts = _synchronised_starts(problem, starts, active, synchronise, solver, progress,
                                           desc, workers)  # fmt: skip
             runs = _lm_starts(problem, starts, active, solver, progress, desc, workers)
-            pulled = 0  # read starts refitted after fits pulled towards the data
-            if read and not synchronise and _above_noise_floor(runs, n_res):
-                again = _synchronised_starts(
-                    problem, np.stack(read), active, READ_SYNC_GAINS, solver, progress,
-                    f"{desc}, read starts", workers,
-                )  # fmt: skip
-                runs += _lm_starts(
-                    problem, again, active, solver, progress,
-                    f"{desc}, read starts after the pulled fits", workers,
-                )  # fmt: skip
-                starts, pulled = np.concatenate([starts, again]), len(again)
+            runs, starts, pulled = _refit_read_starts(
+                problem, runs, starts, read, active, solver, progress, desc, workers,
+                n_res, synchronise,
+            )  # fmt: skip
             chi2s = np.array([r.chi2 if np.isfinite(r.chi2) else np.inf for r in runs])
             best = int(np.argmin(chi2s))
             run = _escape_log_traps(problem, runs[best], names, free_all, active, solver)
@@ -600,10 +593,22 @@ def _synchronised_starts(problem, starts, active, gains, solver, progress, desc,
 READ_SYNC_GAINS = (10.0, 3.0, 1.0, 0.3, 0.1)
 
 
-def _above_noise_floor(runs, n_res: int) -> bool:
-    """Whether every run ended above :data:`NOISE_FLOOR` (chi2 per residual), or failed."""
+def _refit_read_starts(
+    problem, runs, starts, read, active, solver, progress, desc, workers, n_res, synchronise
+):
+    """The last stage's ``runs`` from ``starts``, and, if every run ended above
+    :data:`NOISE_FLOOR` (chi2 per residual; or failed) and there are starts ``read``
+    from the logs that ``synchronise`` has not pulled already, the ordinary fits from
+    those read starts after fits pulled towards the data at :data:`READ_SYNC_GAINS`
+    appended. Returns ``(runs, starts, number appended)``."""
     chi2 = [r.chi2 for r in runs if np.isfinite(r.chi2)]
-    return not chi2 or min(chi2) > NOISE_FLOOR * n_res
+    if not read or synchronise or (chi2 and min(chi2) <= NOISE_FLOOR * n_res):
+        return runs, starts, 0
+    again = _synchronised_starts(problem, np.stack(read), active, READ_SYNC_GAINS, solver,
+                                 progress, f"{desc}, read starts", workers)  # fmt: skip
+    more = _lm_starts(problem, again, active, solver, progress,
+                      f"{desc}, read starts after the pulled fits", workers)  # fmt: skip
+    return [*runs, *more], np.concatenate([starts, again]), len(again)
 
 
 def _lm(problem, theta, active, solver: LM):
