@@ -322,3 +322,55 @@ def test_fit_from_nominal_starts_from_the_slips():
     for name, value in truth.items():
         err = abs(res.params[name] - value)
         assert err < 0.05 * value and err < 3 * res.stderr[name], (name, res.params[name])
+
+
+def test_read_starts_are_pulled_towards_the_data_when_every_start_ends_above_the_floor(
+    monkeypatch,
+):
+    """The last stage of ``fit(..., starts_from_logs=True)`` refits the starts read from
+    the logs after fits pulled towards the data (``READ_SYNC_GAINS``) when every start
+    ended above ``NOISE_FLOOR``, and only then (scripted runs: no simulation)."""
+    from jaxlift.calibrate import fit as fit_mod
+    from jaxlift.calibrate.lm import LMResult
+
+    n_res = 1000
+    calls = []
+
+    def run(chi2n, theta):
+        return LMResult(np.asarray(theta), chi2n * n_res, None, None, True, "", 1, 1, 1, 0.0)
+
+    def pulled(problem, starts, active, gains, solver, progress, desc, workers):
+        calls.append(("pulled", tuple(gains), np.asarray(starts).copy()))
+        return np.asarray(starts) + 0.5  # where the pulled fits leave them
+
+    def ordinary(problem, starts, active, solver, progress, desc, workers=None):
+        calls.append(("ordinary", None, np.asarray(starts).copy()))
+        return [run(1.02, th) for th in starts]  # from there, the noise floor
+
+    monkeypatch.setattr(fit_mod, "_synchronised_starts", pulled)
+    monkeypatch.setattr(fit_mod, "_lm_starts", ordinary)
+    starts = np.zeros((3, 2))
+    read = [np.array([1.0, 1.0]), np.array([2.0, 2.0])]
+    above = [run(3.07, th) for th in starts]
+
+    def refit(runs, read, synchronise=()):
+        calls.clear()
+        return fit_mod._refit_read_starts(
+            None, runs, starts, read, None, None, None, "stage 4/4", 1, n_res, synchronise
+        )
+
+    runs, new_starts, n = refit(above, read)
+    assert n == 2 and len(runs) == 5
+    np.testing.assert_array_equal(new_starts, np.vstack([starts, np.stack(read) + 0.5]))
+    (kind, gains, at), (kind2, _, from_) = calls
+    assert kind == "pulled" and gains == fit_mod.READ_SYNC_GAINS
+    np.testing.assert_array_equal(at, np.stack(read))  # the read starts only
+    assert kind2 == "ordinary"
+    np.testing.assert_array_equal(from_, np.stack(read) + 0.5)  # from where they were pulled
+    assert min(r.chi2 for r in runs) / n_res == pytest.approx(1.02)
+    # all failed: also refitted
+    assert refit([run(np.inf, th) for th in starts], read)[2] == 2
+    # one start at the floor, no read starts, or starts already pulled: nothing more
+    for args in (([*above[:2], run(1.4, starts[2])], read), (above, []), (above, read, (3.0,))):
+        runs, new_starts, n = refit(*args)
+        assert n == 0 and not calls and new_starts is starts and len(runs) == 3
