@@ -390,6 +390,7 @@ def test_lookahead_says_when_the_provisional_effect_is_dropped_again(short_fit, 
     assert kept == ["stick_slip"]
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_the_report_says_why_a_step_named_its_effect(short_fit, monkeypatch, tmp_path):
     """A named step with reasons (the held-out logs decided, or the lookahead kept it)
     has them in the diagnosis report, under that step."""
