@@ -65,6 +65,7 @@ def test_same_noise_same_trajectory(m_load):
         assert mine[k] == pytest.approx(theirs[k], rel=5e-3), k
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_figures_agree_in_distribution_with_independent_noise():
     """Each loop with its own noise (jax.random vs NumPy): the figures of "good" are
     draws of the same random variable, so their means over seeds agree within their

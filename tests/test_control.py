@@ -171,6 +171,7 @@ def test_gains_file_roundtrip_and_errors(tmp_path):
         load_gains(tmp_path / "missing.json")
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_input_delay_closed_loop():
     """The sampled form delays the held duties exactly: replaying the controller's
     duties open loop through ``simulate`` with the same ``input_delay`` reproduces the

@@ -92,6 +92,7 @@ def test_switch_parameters():
     }  # fmt: skip
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_the_screen_compiles_the_residual_function_its_refit_runs():
     """A screened candidate's confirmation refit calls the residual function that the
     screen traced and compiled (the same parametrisation): no second compilation of the

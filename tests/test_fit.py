@@ -100,6 +100,7 @@ def test_refit_from_the_truth_reaches_the_optimum_of_a_nominal_start():
     assert again.chi2 <= ref.chi2 + 0.5
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_effect_parameter_pushed_towards_its_bound():
     """Data without leakage, leakage free: C_L goes towards its bound 0 (log transform);
     the fit must not crash on the vanishing derivative there, and the estimate must not
@@ -115,6 +116,7 @@ def test_effect_parameter_pushed_towards_its_bound():
     assert "C_L" in res.undetermined or res.params["C_L"] - 3 * res.stderr["C_L"] < 0
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_parameter_trapped_near_zero_on_its_log_scale_comes_back():
     """Coulomb friction started at 1e-5 N, damping at 1500 N s/m (truth 22, 420): on
     the log scale the friction's Jacobian column vanishes with it, and the damped

@@ -113,6 +113,7 @@ def test_job_key_follows_inputs_settings_and_version(tmp_path):
 
 
 # ------------------------------------------------------------------ engine
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_engine_retries_records_failures_and_skips_finished(tmp_path):
     import fleet_jobs
 

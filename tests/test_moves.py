@@ -266,6 +266,7 @@ def test_the_chosen_weight_is_stored_with_the_chain_and_reused(tmp_path):
     assert old.move_settings == {"laplace_weight": 0.5}
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_the_chosen_weight_mixes_faster_where_the_proposal_is_poor(tmp_path):
     """Where the Laplace approximation is 2x off (the baseline model of the shipped
     logs is as far off: k-hat 0.6-0.8), independence steps at 0.5 stick; the weight

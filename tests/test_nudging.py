@@ -26,6 +26,7 @@ def _nudging(log, gain, with_speed=True):
     return Nudging.of(log.time_s, log.height_m, log.speed_mps if with_speed else None, gain)
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_gain_zero_is_the_model_itself():
     plant, _ = jl.with_params(jl.Plant(), (), TRUTH)
     log, inputs = _log(plant, (), [(0.0, 1.0), (0.3, 3.0), (0.0, 2.0)])
@@ -34,6 +35,7 @@ def test_gain_zero_is_the_model_itself():
     assert nudged.ok and tree_allclose(nudged.ys, ref.ys, rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 @pytest.mark.parametrize("with_speed", [True, False])
 def test_a_gain_pulls_a_wrong_model_onto_the_data(with_speed):
     """A model whose motor runs 20 % slow (k1, k2, k3), with half the bulk modulus and

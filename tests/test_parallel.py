@@ -51,6 +51,7 @@ def _short_log():
     return jl.to_log(sol, inputs, jl.MeasurementModel(), jax.random.key(5), name="short")
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_fit_does_not_depend_on_the_number_of_threads():
     log = _short_log()
     kw = dict(free="beta,d", n_starts=2, seed=1)

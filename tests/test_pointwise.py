@@ -42,6 +42,7 @@ def _log_prior(problem, theta):
     return total
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_blocks_add_up_to_the_samplers_log_likelihood(problem):
     thetas = _batch(problem, n=4, seed=5)
     preds = predictive(problem, thetas)

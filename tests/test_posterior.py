@@ -80,6 +80,7 @@ def test_problem_setup(problem):
     assert np.all(np.linalg.eigvalsh(problem.cov_theta) > 0)
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_a_model_that_does_not_reach_the_noise_says_so(logs, problem):
     """The intervals are conditional on the fitted model: the right model at its optimum
     is at the noise floor (no warning); with the damping held wrong (20 000 N s/m against
@@ -93,6 +94,7 @@ def test_a_model_that_does_not_reach_the_noise_says_so(logs, problem):
     assert any("leaves error above the sensor noise" in line for line in said), said
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_log_prob_finite_and_batch_equals_single(problem, log_prob):
     th = _batch(problem)
     th[0] = problem.theta_opt

@@ -46,6 +46,7 @@ def _late_oscillation(sol) -> float:
     return float(np.sqrt(np.mean((v - mean)[25:-25] ** 2)))
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_continuous_tuned_gains_are_unstable_on_the_clock_and_the_simulation_agrees():
     ctrl = PID().with_gains(CONTINUOUS_TUNED)
     eig, _, found = closed_loop_eigenvalues(PLANT, (), ctrl, 1000.0, 2.25, 0.025)

@@ -125,6 +125,7 @@ def test_explain_finds_a_planted_law_and_flags_model_terms():
 
 
 # ---------------------------------------------------------------- the estimate
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_a_hidden_force_is_recovered_when_the_parameters_are_right():
     """Seal friction hidden, the model at the true parameters: the estimated force is
     the law (correlation >= 0.9, the issue's criterion: the law jumps where the speed
@@ -164,6 +165,7 @@ class DutyFlowLoss(jl.AbstractStatelessEffect):
         return -self.k * sig.u
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_a_missing_flow_that_steps_with_the_duty_is_followed_by_the_jumps(monkeypatch):
     """The duty steps (20 ms ramps) and the missing flow with it. The marginal
     likelihood turns the jumps on (a smooth flow alone cannot step), and the estimate
@@ -199,6 +201,7 @@ def test_a_missing_flow_that_steps_with_the_duty_is_followed_by_the_jumps(monkey
     assert corr >= 0.99 and rms < 0.5 * rms_smooth, (corr, rms, corr_smooth, rms_smooth)
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_nothing_missing_needs_no_signal_and_no_jumps():
     """The true model, nothing hidden: neither signal is needed, no jumps are chosen,
     and the fit stays at the noise."""
@@ -275,6 +278,7 @@ def test_steps_that_each_raise_the_misfit_a_little_do_not_add_up(monkeypatch):
     assert lg.chi2n_after <= lg.chi2n_before * 1.01 + 1e-3, (lg.chi2n_before, lg.chi2n_after)
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_without_a_pressure_sensor_a_signal_not_needed_is_held_at_zero():
     """A log without pressure: a free flow and a free force could trade along what the
     log cannot see (a straight-line flow drifts the pressure, the force makes up for

@@ -169,6 +169,7 @@ def test_backwards_in_time_matches_clip():
     assert np.isin(np.nextafter(-inside, np.inf), -t_new[np.isfinite(t_new)]).all()
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_vmap_over_delays():
     """Batched delays shift batched jump times (``inputs.jump_ts + delay``). The
     vmapped solve equals the vmapped solve through diffrax's controller, and each

@@ -175,6 +175,7 @@ def test_robust_objective_is_mean_plus_cvar():
     assert float(jnp.sum(draw_weights(jnp.asarray(c), False) * c)) == pytest.approx(4.0)
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_residuals_sum_to_the_tuning_cost():
     """LM tunes ``sum(r**2)``: it must be the cost, for the plain and the scheduled PID
     (whose noise amplification differs per stage)."""
@@ -200,6 +201,7 @@ def test_residuals_sum_to_the_tuning_cost():
     assert max(per_stage) > 1.5 * min(per_stage)  # stage 3's gains pay for their noise
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_evaluate_draws_same_per_draw_whatever_the_threads():
     """The draws of a robustness report run in chunks on threads (the last chunk padded
     with copies of the last draw): each draw's cost, flag and figures are those of the
@@ -223,6 +225,7 @@ def test_evaluate_draws_same_per_draw_whatever_the_threads():
     assert len(set(np.round(runs[0][0], 9))) == 3  # the draws differ: not one run copied
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_tune_multistart_threads_do_not_change_the_result():
     """The starts of a multistart tuning run side by side on threads: the same gains,
     objective and evaluations as one after the other (a small budget)."""

@@ -221,6 +221,7 @@ def test_user_effect_is_diagnosed_like_the_built_in_ones(drag_file, tmp_path):
     assert abs(top["fitted_params"]["c_q"] / DRAG - 1) < 0.2
 
 
+@pytest.mark.slow  # fast loop: over ~15 s alone (measured 2026-12-03)
 def test_a_parameter_pushed_past_its_upper_bound_is_held_there(drag_file, tmp_path, monkeypatch):
     """A ``log`` transform keeps a parameter above its lower bound only; the fit must
     hold one that the data push past its upper bound at that bound, refit the rest, say
