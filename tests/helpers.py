@@ -1,4 +1,4 @@
-"""Test helpers: tree comparison and finite-difference gradient checks."""
+"""Test helpers: tree comparison, finite-difference gradient checks, short logs."""
 
 from __future__ import annotations
 
@@ -20,6 +20,19 @@ def tree_allclose(x, y, *, rtol=1e-7, atol=0.0) -> bool:
         a.shape == b.shape and bool(jnp.allclose(a, b, rtol=rtol, atol=atol))
         for a, b in zip(xs, ys)
     )
+
+
+def head(log, n: int, name: str = "short"):
+    """The first ``n`` samples of a :class:`jaxlift.Log`, every column it has: a short
+    log for tests whose claim does not need the whole run."""
+    from jaxlift import Log
+
+    cut = {c: getattr(log, c) for c in ("speed_mps", "pressure_pa")}
+    return Log(
+        time_s=log.time_s[:n], pwm=log.pwm[:n], height_m=log.height_m[:n],
+        load_kg=log.load_kg[:n], name=name,
+        **{c: None if a is None else a[:n] for c, a in cut.items()},
+    )  # fmt: skip
 
 
 def finite_difference_grad(f, x: np.ndarray, rel_step: float = 1e-6) -> np.ndarray:

@@ -92,7 +92,10 @@ def test_figures_agree_in_distribution_with_independent_noise():
     assert osc["thesis"] > 1.3 * osc["low"], osc
 
 
-@pytest.mark.slow
+# ~260 s (a whole default tuning): out of CI's time since 2026-12-04. In CI the tuner is
+# checked by tests/test_tuning.py (tuned gains beat the thesis gains, robust tuning,
+# the command) and this loop by the two tests above; run with -m extended.
+@pytest.mark.extended
 def test_tuned_gains_meet_the_targets_on_the_independent_loop():
     """Issue #18's acceptance, checked outside the tuner. The gains are tuned as
     ``jaxlift tune`` tunes them by default -- the loop as deployed (sampled every

@@ -12,6 +12,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from asammdf import MDF, Signal
+from helpers import head
 
 import jaxlift as jl
 from jaxlift.cli.common import read_logs
@@ -87,14 +88,20 @@ def test_mdf4_and_parquet_of_the_shipped_log_read_like_the_csv(tmp_path, shipped
 
 @pytest.mark.slow
 def test_mdf4_and_parquet_of_a_shipped_log_give_the_same_fit_as_the_csv(tmp_path, shipped, capsys):
-    """The acceptance of the log formats, as a user meets it: ``jaxlift fit`` on the
-    CSV, an MDF 4 and a Parquet copy of a shipped log prints the same fit and writes
-    the same parameters (one start per stage: the CI's time)."""
-    mf4 = write_mdf(tmp_path / "lift_500kg.mf4", shipped.time_s, log_channels(shipped))
+    """The acceptance of the log formats, as a user meets it: ``jaxlift fit`` on a CSV,
+    an MDF 4 and a Parquet copy of a shipped log's first 40 s prints the same fit and
+    writes the same parameters (one start per stage). The claim is that the three
+    formats feed the fit the same log: the whole 129 s log, fitted three times, took
+    ~400 s of the CI's time (until 2026-12-04); the misfit hint it also printed is
+    tested in test_fit.py."""
+    part = head(shipped, 4000, name="lift_500kg")
+    csv = tmp_path / "lift_500kg.csv"
+    jl.write_log(csv, part)
+    mf4 = write_mdf(tmp_path / "lift_500kg.mf4", part.time_s, log_channels(part))
     parquet = tmp_path / "lift_500kg.parquet"
-    pq.write_table(pa.table({c: shipped.column(c) for c in shipped.columns}), parquet)
+    pq.write_table(pa.table({c: part.column(c) for c in part.columns}), parquet)
     printed, fitted = {}, {}
-    for fmt, path in (("csv", shipped.path), ("mf4", mf4), ("parquet", parquet)):
+    for fmt, path in (("csv", csv), ("mf4", mf4), ("parquet", parquet)):
         out = tmp_path / fmt
         rc = main(["fit", str(path), "--starts", "1", "--out", str(out)])
         assert rc == 0, fmt
@@ -104,8 +111,6 @@ def test_mdf4_and_parquet_of_a_shipped_log_give_the_same_fit_as_the_csv(tmp_path
                         if "chi2/N" in ln]  # fmt: skip
         fitted[fmt] = json.loads((out / "params.json").read_text())
     assert len(printed["csv"]) >= 2 and any("-> " in ln for ln in printed["csv"])
-    # the baseline misses the stick-slip and hose compliance hidden in the shipped logs
-    assert any(ln.startswith("misfit above the sensor noise") for ln in printed["csv"])
     assert printed["mf4"] == printed["csv"] and printed["parquet"] == printed["csv"]
     assert fitted["mf4"] == fitted["csv"] and fitted["parquet"] == fitted["csv"]
 

@@ -2,7 +2,7 @@
 
 import jax.numpy as jnp
 import pytest
-from helpers import tree_allclose
+from helpers import head, tree_allclose
 
 import jaxlift as jl
 
@@ -39,10 +39,7 @@ def test_with_values_and_errors():
 
 def test_fit_result_carries_the_calibrated_model():
     log = jl.read_log("data/lift_500kg.csv")
-    short = jl.Log(
-        time_s=log.time_s[:1500], pwm=log.pwm[:1500], height_m=log.height_m[:1500],
-        load_kg=log.load_kg[:1500], speed_mps=log.speed_mps[:1500], name="short",
-    )  # fmt: skip
+    short = head(log, 1500)
     res = jl.fit([short], free="beta,d", n_starts=1, solver=jl.LM(max_steps=3))
     assert res.model.effect_names == ()
     assert jnp.allclose(res.model.plant.beta, res.params["beta"])

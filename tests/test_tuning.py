@@ -282,7 +282,11 @@ def test_robust_tuning_has_better_worst_case_on_held_out_draws(fit_dir):
     another of the same kind), so only its direction is asserted."""
     draws = parameter_draws(6 + 16, 11, fit_dir=fit_dir)
     tune_set, held_out = draws.split(6)
-    nominal = tune_gains(START, PLANT, (), [REF], steps=25, rtol=1e-6)
+    # Nominal tuning run to its own stop: the budget is a cap, not the subject. 25
+    # evaluations sufficed here, but on another machine (16 cores, jax 0.11.2, 2026-12-04)
+    # they were spent before LM stopped ("evaluation budget spent"): its path differs
+    # with the CPU's rounding. A start that stops earlier uses no more.
+    nominal = tune_gains(START, PLANT, (), [REF], steps=80, rtol=1e-6)
     assert nominal.message.startswith(("converged", "stalled")), nominal.message
     plants, effs = batch_models(PLANT, (), tune_set.draws)
     robust = tune_multistart(

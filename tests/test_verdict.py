@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers import head
 
 import jaxlift as jl
 from jaxlift.calibrate import diagnose as dg
@@ -95,11 +96,7 @@ def test_separating_experiments_are_specific():
 @pytest.fixture(scope="module")
 def short_fit():
     log = jl.read_log("data/lift_500kg.csv")
-    n = 3000
-    short = jl.Log(
-        time_s=log.time_s[:n], pwm=log.pwm[:n], height_m=log.height_m[:n],
-        load_kg=log.load_kg[:n], speed_mps=log.speed_mps[:n], name="short",
-    )  # fmt: skip
+    short = head(log, 3000)
     return [short], jl.fit([short], free="beta,d,cf_con", n_starts=1)
 
 
