@@ -23,15 +23,18 @@ def tree_allclose(x, y, *, rtol=1e-7, atol=0.0) -> bool:
 
 
 def head(log, n: int, name: str = "short"):
-    """The first ``n`` samples of a :class:`jaxlift.Log`, every column it has: a short
-    log for tests whose claim does not need the whole run."""
+    """The first ``n`` samples of a :class:`jaxlift.Log`, every column it has (extra
+    ones too): a short log for tests whose claim does not need the whole run."""
     from jaxlift import Log
 
-    cut = {c: getattr(log, c) for c in ("speed_mps", "pressure_pa")}
+    def cut(a):
+        return None if a is None else a[:n]
+
     return Log(
-        time_s=log.time_s[:n], pwm=log.pwm[:n], height_m=log.height_m[:n],
-        load_kg=log.load_kg[:n], name=name,
-        **{c: None if a is None else a[:n] for c, a in cut.items()},
+        time_s=cut(log.time_s), pwm=cut(log.pwm), height_m=cut(log.height_m),
+        load_kg=cut(log.load_kg), speed_mps=cut(log.speed_mps),
+        pressure_pa=cut(log.pressure_pa), extra={k: cut(v) for k, v in log.extra.items()},
+        name=name,
     )  # fmt: skip
 
 
