@@ -86,6 +86,8 @@ def run_case(
     wall = time.perf_counter() - t0
     result = {
         "commit": _jaxlift_commit(),
+        "library": _jaxlift_library(),
+        "jax": jax.__version__,
         "case_id": spec["case_id"],
         "kind": spec["kind"],
         "hidden": spec["hidden_effects"],
@@ -115,19 +117,53 @@ def _text(b) -> str:
     return b.decode(errors="replace") if isinstance(b, bytes) else (b or "")
 
 
-def _jaxlift_commit() -> str:
-    """The git commit of the jaxlift that the cases' processes import (the study can run
-    from a frozen worktree on PYTHONPATH while development goes on)."""
+def _jaxlift_dir() -> str:
+    """The folder of the jaxlift package that the cases' processes import (the study can
+    run from a frozen worktree on PYTHONPATH while development goes on)."""
     code = "import jaxlift, pathlib; print(pathlib.Path(jaxlift.__file__).parent)"
     proc = subprocess.run(
         [sys.executable, "-P", "-c", code], capture_output=True, text=True, check=False
     )
-    where = proc.stdout.strip() or "."
-    rev = subprocess.run(["git", "-C", where, "rev-parse", "--short", "HEAD"],
-                         capture_output=True, text=True, check=False)  # fmt: skip
-    dirty = subprocess.run(["git", "-C", where, "status", "--porcelain", "--", "."],
-                           capture_output=True, text=True, check=False)  # fmt: skip
-    return rev.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "") or "unknown"
+    return proc.stdout.strip() or "."
+
+
+def _git(where: str, *args: str) -> str:
+    proc = subprocess.run(["git", "-C", where, *args], capture_output=True, text=True,
+                          check=False)  # fmt: skip
+    return proc.stdout.strip() if proc.returncode == 0 else ""
+
+
+def _dirty(where: str) -> bool:
+    return bool(_git(where, "status", "--porcelain", "--", "."))
+
+
+def _jaxlift_commit() -> str:
+    """The git commit of the jaxlift that the cases' processes import."""
+    where = _jaxlift_dir()
+    rev = _git(where, "rev-parse", "--short", "HEAD")
+    return (rev + ("+dirty" if _dirty(where) else "")) or "unknown"
+
+
+def _jaxlift_library() -> str:
+    """The git tree of the ``jaxlift/`` package the cases' processes import (its short
+    hash; ``+dirty`` with uncommitted changes there): the code under test. Commits that
+    change only tests, studies or documents share it, so a re-run on one library can
+    span several commits (and sittings) and still be one measurement."""
+    where = _jaxlift_dir()
+    tree = _git(where, "rev-parse", "--short", "HEAD:./")
+    return (tree + ("+dirty" if _dirty(where) else "")) or "unknown"
+
+
+def library_of(r: dict) -> str:
+    """The library tree a result ran on: recorded since 2026-12-05; for earlier results
+    read from the git history through their commit (``?`` when it cannot be)."""
+    if r.get("library"):
+        return r["library"]
+    commit = r.get("commit", "")
+    if not commit or commit.endswith("+dirty"):
+        return "?"
+    root = str(pathlib.Path(__file__).resolve().parents[1])
+    return _git(root, "rev-parse", "--short", f"{commit}:jaxlift") or "?"
 
 
 def outcome(r: dict) -> str:
@@ -166,10 +202,25 @@ def cmd_run(args) -> int:
     from tqdm.auto import tqdm
 
     kept = pathlib.Path(args.results)
+    if args.library:
+        lib = _jaxlift_library()
+        if lib != args.library:
+            print(
+                f"--library {args.library}: the jaxlift imported here is library {lib} "
+                f"(from {_jaxlift_dir()}); check out a commit whose jaxlift/ tree is "
+                f"{args.library} (git rev-parse --short COMMIT:jaxlift tells; or put a "
+                "frozen worktree on PYTHONPATH) so that every case of this re-run tests "
+                "the same code",
+                file=sys.stderr,
+            )
+            return 2
     kept.mkdir(parents=True, exist_ok=True)
     for spec in tqdm(cases, desc="detection study", unit="case"):
         if (kept / f"{spec['case_id']}.json").exists():
             continue
+        if args.library and _jaxlift_library() != args.library:  # edited meanwhile
+            print(f"stopped: jaxlift is no longer library {args.library}", file=sys.stderr)
+            return 2
         r = run_case(spec, data, out, time_limit=args.time_limit)
         (kept / f"{spec['case_id']}.json").write_text(json.dumps(r, indent=1))
         tqdm.write(
@@ -199,20 +250,26 @@ def cmd_report(args) -> int:
     kept, to = pathlib.Path(args.results), pathlib.Path(args.to)
     to.mkdir(parents=True, exist_ok=True)
     results = _load(kept)
+    libraries: dict[str, int] = {}
+    for r in results:
+        libraries[library_of(r)] = libraries.get(library_of(r), 0) + 1
+    if args.library:
+        results = [r for r in results if library_of(r) == args.library]
     if not results:
-        print(f"no results under {kept}", file=sys.stderr)
+        print(f"no results under {kept}" + (f" on library {args.library}" if args.library
+              else ""), file=sys.stderr)  # fmt: skip
         return 1
     with open(to / "results.csv", "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["case_id", "kind", "hidden", "sizes", "found", "final", "outcome",
-                    "baseline_chi2n", "wall_s", "commit"])  # fmt: skip
+                    "baseline_chi2n", "wall_s", "commit", "library"])  # fmt: skip
         for r in results:
             w.writerow([
                 r["case_id"], r["kind"], "+".join(r["hidden"]) or "none",
                 json.dumps(r["sizes"]), "+".join(r.get("found", [])) or "none",
                 r.get("final_verdict", ""), outcome(r),
                 f"{r.get('baseline_chi2n', float('nan')):.4g}", f"{r['wall_s']:.1f}",
-                r.get("commit", "?"),
+                r.get("commit", "?"), library_of(r),
             ])  # fmt: skip
     labels = ["none", *EFFECTS, "pair", "crash"]
     conf = np.zeros((len(labels), len(labels)), dtype=int)
@@ -301,6 +358,19 @@ def cmd_report(args) -> int:
         ]
     commits = sorted({r.get("commit", "?") for r in results})
     lines += ["", f"jaxlift commit(s) the cases ran on: {', '.join(commits)}."]
+    used = sorted({library_of(r) for r in results})
+    lines += [
+        "",
+        f"jaxlift library (git tree of `jaxlift/`) the cases ran on: {', '.join(used)}"
+        + (" (one code version)." if len(used) == 1 else " (several code versions).")
+        + (
+            f" Report restricted to library {args.library}; under {kept}: "
+            + ", ".join(f"{k} {v} case(s)" for k, v in sorted(libraries.items()))
+            + "."
+            if args.library
+            else ""
+        ),
+    ]
     lines += ["", "| case | hidden | size | baseline chi2/N | found | final | outcome | time [s] |"]
     lines.append("|---|---|---|---:|---|---|---|---:|")
     for r in results:
@@ -358,10 +428,15 @@ def main(argv: list[str] | None = None) -> int:
         help="seconds one case may take before it is stopped and counted as failed",
     )  # fmt: skip
     r.add_argument("--results", default=RESULTS, help="each case's result (committed)")
+    r.add_argument(
+        "--library", help="refuse to run unless the jaxlift imported is this git tree of "
+        "jaxlift/ (a re-run on one code version across sittings)",
+    )  # fmt: skip
     r.set_defaults(func=cmd_run)
     q = sub.add_parser("report", help="summarise the results")
     q.add_argument("--results", default=RESULTS, help="each case's result, from `run`")
     q.add_argument("--to", default="studies/results", help="where the report goes")
+    q.add_argument("--library", help="only the cases run on this git tree of jaxlift/")
     q.set_defaults(func=cmd_report)
     args = p.parse_args(argv)
     return args.func(args)

@@ -49,14 +49,6 @@ def shipped():
     return [jl.read_log(ROOT / f"data/lift_{m}kg.csv") for m in (500, 1500)]
 
 
-@pytest.fixture(scope="module")
-def problems(shipped):
-    return {
-        c: prepare_posterior(shipped, params=SHIPPED_TRUTH, effects=EFFECTS, conditioning=c)
-        for c in ("marginal", "conditional")
-    }
-
-
 def _sd(problem, name):
     k = problem.names.index(name)
     return math.sqrt(problem.cov_theta[k, k])
@@ -81,9 +73,20 @@ def test_nuisances_named_and_undetermined_ones_do_not_move(synthetic):
 
 
 @pytest.mark.slow
-def test_marginal_widths_are_the_full_fits_standard_errors(shipped, problems):
-    """The fit of every parameter (from the truth) gives the standard errors the
-    marginal posterior must reproduce; the conditional widths are narrower."""
+def test_marginal_widths_and_curvature_on_the_shipped_logs(shipped):
+    """Two checks on the same pair of posterior problems (one test, so that the pair,
+    48 s to set up on 2 cores, is built once whatever xdist worker runs it):
+
+    - widths: the fit of every parameter (from the truth) gives the standard errors the
+      marginal posterior must reproduce; the conditional widths are narrower;
+    - curvature: a step of one marginal standard deviation along ``log beta`` (the other
+      sampled parameters held) lowers the log-probability by ``0.5 H_bb h^2``, with
+      ``H`` the marginal information (the inverse of the Laplace covariance); the
+      conditional log-probability, whose nuisances stay put, drops by more."""
+    problems = {
+        c: prepare_posterior(shipped, params=SHIPPED_TRUTH, effects=EFFECTS, conditioning=c)
+        for c in ("marginal", "conditional")
+    }
     assert problems["conditional"].nuisance == ()
     full = jl.fit(shipped, effects=EFFECTS, free="all", init=SHIPPED_TRUTH, n_starts=1)
     for name in ("beta", "C_h"):
@@ -93,13 +96,6 @@ def test_marginal_widths_are_the_full_fits_standard_errors(shipped, problems):
         assert marg == pytest.approx(se, rel=0.15), msg
         assert cond < 0.8 * marg, msg
 
-
-@pytest.mark.slow
-def test_log_prob_curvature_is_the_marginal_information(problems):
-    """A step of one marginal standard deviation along ``log beta`` (the other sampled
-    parameters held) lowers the log-probability by ``0.5 H_bb h^2``, with ``H`` the
-    marginal information (the inverse of the Laplace covariance); the conditional
-    log-probability, whose nuisances stay put, drops by more."""
     drops = {}
     for c, problem in problems.items():
         lp = make_log_prob(problem, devices=1)
