@@ -8,6 +8,7 @@ import importlib.util
 import json
 import pathlib
 
+import numpy as np
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -62,6 +63,10 @@ def test_report_counts_the_intervals_that_contain_the_truth(coverage, tmp_path):
     assert float(rows["cf_con"]["cover_90"]) == pytest.approx(2 / 3)
     assert float(rows["d"]["cover_50"]) == pytest.approx(2 / 3)
     assert float(rows["cf_out*cf_in^5"]["cover_90"]) == pytest.approx(2 / 3)
+    from scipy import stats  # beta's rms z: PITs 0.5, 0.1, 0.6
+
+    z = stats.norm.ppf([0.5, 0.1, 0.6])
+    assert float(rows["beta"]["rms_z"]) == pytest.approx(np.sqrt(np.mean(z**2)))
     assert "case_003 (null): the chain did not reach 50 tau" in text
     for png in ("pit.png", "pit_ecdf.png", "coverage_ecdf.png"):
         assert (to / png).stat().st_size > 5_000
@@ -98,6 +103,29 @@ def test_clopper_pearson_matches_the_binomial_tails(coverage):
     assert stats.binom.cdf(45, 50, hi) == pytest.approx(0.025, rel=1e-6)
     assert coverage.clopper_pearson(0, 10)[0] == 0.0
     assert coverage.clopper_pearson(10, 10)[1] == 1.0
+
+
+def test_width_ratio_from_the_pits(coverage):
+    """The width ratio: rms of Phi^-1(PIT), by hand on four cases; its chi-square
+    interval's ends leave 2.5 % each; a truth beyond every draw counts as 3.09 standard
+    deviations; and on made-up posteriors 1.3 times too narrow (a fixed seed) the
+    estimate's interval holds 1.3 and not 1, while calibrated ones give an interval
+    around 1."""
+    from scipy import stats
+
+    pits = stats.norm.cdf([1.0, -1.0, 2.0, -2.0])
+    s, lo, hi = coverage.width_ratio(pits)
+    assert s == pytest.approx(2.5**0.5, rel=1e-12)
+    assert stats.chi2.sf(10.0 / lo**2, 4) == pytest.approx(0.025, rel=1e-9)
+    assert stats.chi2.cdf(10.0 / hi**2, 4) == pytest.approx(0.025, rel=1e-9)
+    s, _, _ = coverage.width_ratio([0.0, 1.0])
+    assert s == pytest.approx(stats.norm.ppf(0.999), rel=1e-12)
+    rng = np.random.default_rng(20261205)
+    s, lo, hi = coverage.width_ratio(stats.norm.cdf(1.3 * rng.standard_normal(400)))
+    assert lo < 1.3 < hi and lo > 1.0
+    s, lo, hi = coverage.width_ratio(rng.uniform(size=400))
+    assert lo < 1.0 < hi
+    assert all(np.isnan(coverage.width_ratio([])))
 
 
 # ~145 s (two runs of a study script): out of CI's time since 2026-12-04; the study
