@@ -27,7 +27,11 @@ several sittings::
 ``report`` writes ``coverage.md`` (per parameter: how often each interval contains the
 truth, with a 95 % Clopper-Pearson interval of that rate, over the cases whose chain
 converged; and how much wider the intervals would have to be, from the PITs: see
-:func:`width_ratio`), ``coverage.csv`` and ``pit.png``.
+:func:`width_ratio`), ``coverage.csv`` and ``pit.png``. Each case also records the
+fit's value and standard error of every target (from its ``metrics.json``) and the
+chain's mean and standard deviation, so that the report can tell a miss of the fit (its
+own ``z`` too wide) from one of the chain (narrower than the fit's standard error);
+cases run before 2026-12-05 lack them.
 """
 
 from __future__ import annotations
@@ -53,11 +57,11 @@ from scipy import stats  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import detection_generator as gen  # noqa: E402
+from stderr_montecarlo import TARGETS, target_estimates  # noqa: E402
 
 #: The cases: 30 without an effect and 3 sizes of each of the eight effects (54), from
 #: this seed; a seed of its own, so that the data differ from the detection study's.
 SEED, N_NULL, SIZES = 17, 30, 3
-TARGETS = ("beta", "cf_con", "d", "cf_out*cf_in^5")
 LEVELS = (0.5, 0.9)
 #: PITs are clipped to [PIT_CLIP, 1 - PIT_CLIP] before the normal quantile: a truth beyond
 #: every draw (PIT 0 or 1) counts as 3.09 standard deviations out, a lower bound.
@@ -74,6 +78,20 @@ def _derived(values: dict) -> dict[str, np.ndarray]:
     out = {k: np.asarray(values[k], dtype=float) for k in ("beta", "cf_con", "d")}
     out["cf_out*cf_in^5"] = np.asarray(values["cf_out"]) * np.asarray(values["cf_in"]) ** 5
     return out
+
+
+def _fit_estimates(res_dir: pathlib.Path) -> dict[str, dict[str, float]]:
+    """The fit's value and standard error of each target, from its ``metrics.json``
+    ({} without one, or when the fit did not free ``cf_in`` and ``cf_out``)."""
+    path = res_dir / "fit" / "metrics.json"
+    if not path.exists():
+        return {}
+    m = json.loads(path.read_text())
+    free = list(m["correlation"]["names"])
+    if not {"cf_in", "cf_out"} <= set(free):
+        return {}
+    val, se = target_estimates(m["params"], m["stderr"], m["correlation"]["matrix"], free)
+    return {k: {"value": val[k], "se": se[k]} for k in TARGETS}
 
 
 def run_case(spec: dict, data: pathlib.Path, out: pathlib.Path, args) -> dict:
@@ -102,6 +120,7 @@ def run_case(spec: dict, data: pathlib.Path, out: pathlib.Path, args) -> dict:
     chi2n = _fit_chi2n(res_dir)
     if chi2n:
         result["fit_chi2n"] = chi2n
+    fit_est = _fit_estimates(res_dir)
     if params.exists():
         post_cmd = [*jl, "posterior", *logs, *eff, "--params", str(params),
                     "--max-steps", str(args.max_steps), "--predictive", "8",
@@ -131,7 +150,10 @@ def run_case(spec: dict, data: pathlib.Path, out: pathlib.Path, args) -> dict:
             result["posterior_steps"] = post_info.get("steps")
             result["targets"] = {}
             for k in TARGETS:
-                row = {"truth": float(t[k]), "pit": float(np.mean(s[k] < t[k]))}
+                row = {"truth": float(t[k]), "pit": float(np.mean(s[k] < t[k])),
+                       "mean": float(np.mean(s[k])), "sd": float(np.std(s[k]))}  # fmt: skip
+                if k in fit_est:  # the fit's own: is a miss the fit's or the chain's?
+                    row["fit_value"], row["fit_se"] = fit_est[k]["value"], fit_est[k]["se"]
                 for lev in LEVELS:
                     lo, hi = np.quantile(s[k], [0.5 - lev / 2, 0.5 + lev / 2])
                     row[f"in_{int(100 * lev)}"] = bool(lo <= t[k] <= hi)
@@ -171,10 +193,18 @@ def width_ratio(pits: np.ndarray, conf: float = 0.95) -> tuple[float, float, flo
     separates "too narrow" from bad luck with fewer cases. PITs are clipped
     (:data:`PIT_CLIP`), so a truth beyond every draw makes ``s`` a lower bound."""
     p = np.clip(np.asarray(pits, dtype=float), PIT_CLIP, 1.0 - PIT_CLIP)
-    n = p.size
+    return rms_with_interval(stats.norm.ppf(p), conf)
+
+
+def rms_with_interval(z: np.ndarray, conf: float = 0.95) -> tuple[float, float, float]:
+    """``(s, lower, upper)``: the root mean square of ``z`` and its ``conf`` interval
+    for ``z ~ N(0, s^2)`` (``sum z^2 / s^2`` chi-square on ``len(z)`` degrees of
+    freedom); nan for no values."""
+    z = np.asarray(z, dtype=float)
+    n = z.size
     if n == 0:
         return math.nan, math.nan, math.nan
-    ss = float(np.sum(stats.norm.ppf(p) ** 2))
+    ss = float(np.sum(z**2))
     a = (1.0 - conf) / 2.0
     lo = math.sqrt(ss / stats.chi2.ppf(1.0 - a, n))
     hi = math.sqrt(ss / stats.chi2.ppf(a, n))
@@ -315,6 +345,7 @@ def report(out: pathlib.Path | list[pathlib.Path], to: pathlib.Path) -> str:
         "with a chi-square interval. A PIT of 0 or 1 counts as |z| = 3.09, so a set with "
         "one is a lower bound.",
         "",
+        *_fit_and_chain(usable),
         *_per_set(usable, seeds),
         "![PIT histograms](pit.png)",
         "",
@@ -367,6 +398,41 @@ def report(out: pathlib.Path | list[pathlib.Path], to: pathlib.Path) -> str:
                   for r in results if r not in usable]  # fmt: skip
     (to / "coverage.md").write_text("\n".join(lines) + "\n")
     return "\n".join(lines)
+
+
+def _fit_and_chain(usable: list[dict]) -> list[str]:
+    """Where the cases recorded the fit's standard errors (cases run since 2026-12-05):
+    is a miss the fit's (its own ``z = (fit - truth) / se`` too wide: the standard error
+    is short, or the fit biased) or the chain's (its standard deviation below the fit's
+    standard error)? [] when no case recorded them."""
+    rows = []
+    for k in TARGETS:
+        rs = [r["targets"][k] for r in usable if "fit_se" in r["targets"][k]]
+        rs = [t for t in rs if np.isfinite(t["fit_se"]) and t["fit_se"] > 0]
+        if not rs:
+            continue
+        z = np.array([(t["fit_value"] - t["truth"]) / t["fit_se"] for t in rs])
+        rms, lo, hi = rms_with_interval(z)
+        ratio = np.array([t["sd"] / t["fit_se"] for t in rs])
+        rows.append(
+            f"| {k} | {z.size} | {rms:.2f} | [{lo:.2f}, {hi:.2f}] | "
+            f"{np.mean(z):+.2f} | {np.median(ratio):.2f} | {ratio.min():.2f}-{ratio.max():.2f} |"
+        )
+    if not rows:
+        return []
+    return [
+        "The fit and the chain apart (the cases that recorded the fit's standard "
+        "errors): the fit's own `z = (fit - truth) / se` (rms 1 when its standard errors "
+        "are right and it is unbiased; mean 0 when unbiased) and the chain's standard "
+        "deviation over the fit's standard error (1 when the posterior is as wide as "
+        "the fit says).",
+        "",
+        "| parameter | n | fit: rms z | 95 % CI | fit: mean z | chain sd / fit se: median "
+        "| range |",
+        "|---|---|---|---|---|---|---|",
+        *rows,
+        "",
+    ]
 
 
 def _per_set(usable: list[dict], seeds: list[int]) -> list[str]:

@@ -40,6 +40,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import pathlib
 import sys
 import time
@@ -124,19 +125,31 @@ def _generator_draws(clean, n_draws: int):
         yield logs
 
 
-def _estimates(f) -> tuple[dict[str, float], dict[str, float]]:
-    """A fit's values and standard errors of the targets; the product cf_out*cf_in^5
-    (the friction the data determine) by the delta method on its logarithm."""
-    val = {k: float(f.params[k]) for k in TARGETS[:3]}
-    se = {k: float(f.stderr[k]) for k in TARGETS[:3]}
-    i, o = f.free.index("cf_in"), f.free.index("cf_out")
-    g = np.zeros(len(f.free))
-    g[i], g[o] = 5.0 / f.params["cf_in"], 1.0 / f.params["cf_out"]
-    s = np.array([f.stderr[n] for n in f.free])
-    cov = np.asarray(f.corr) * np.outer(s, s)
-    val["cf_out*cf_in^5"] = float(f.params["cf_out"] * f.params["cf_in"] ** 5)
-    se["cf_out*cf_in^5"] = val["cf_out*cf_in^5"] * float(np.sqrt(max(g @ cov @ g, 0.0)))
+def target_estimates(
+    params: dict, stderr: dict, corr, free: list[str]
+) -> tuple[dict[str, float], dict[str, float]]:
+    """A fit's values and standard errors of the targets (physical units), from its
+    parameters, standard errors and correlation matrix over ``free``; the product
+    ``cf_out*cf_in^5`` (the friction the data determine) by the delta method on its
+    logarithm, so the direction along which ``cf_in`` and ``cf_out`` trade, which the
+    covariance leaves out, does not enter. A standard error the fit did not give is nan."""
+    se_of = {n: math.nan if stderr.get(n) is None else float(stderr[n]) for n in free}
+    val = {k: float(params[k]) for k in TARGETS[:3]}
+    se = {k: se_of.get(k, math.nan) for k in TARGETS[:3]}
+    i, o = free.index("cf_in"), free.index("cf_out")
+    g = np.zeros(len(free))
+    g[i], g[o] = 5.0 / params["cf_in"], 1.0 / params["cf_out"]
+    sd = np.array([se_of[n] for n in free])
+    keep = g != 0.0  # nan elsewhere must not reach the product
+    cov = np.asarray(corr, dtype=float)[np.ix_(keep, keep)] * np.outer(sd[keep], sd[keep])
+    val["cf_out*cf_in^5"] = float(params["cf_out"] * params["cf_in"] ** 5)
+    se["cf_out*cf_in^5"] = val["cf_out*cf_in^5"] * float(np.sqrt(max(g[keep] @ cov @ g[keep], 0.0)))
     return val, se
+
+
+def _estimates(f) -> tuple[dict[str, float], dict[str, float]]:
+    """A fit's values and standard errors of the targets (:func:`target_estimates`)."""
+    return target_estimates(f.params, f.stderr, f.corr, list(f.free))
 
 
 def run(draws, truth: dict, n_draws: int, clean=None, effects: Sequence[str] = ()) -> str:

@@ -31,13 +31,18 @@ def _case(
     converged: bool = True,
     seed: int | None = None,
     committed: bool = False,
+    fit: tuple[float, float, float] | None = None,
 ) -> None:
     """One finished case: in a run folder (``cid/result.json``), or as committed
-    (``cid.json``); without ``seed`` like the first set's results, which lack it."""
+    (``cid.json``); without ``seed`` like the first set's results, which lack it.
+    ``fit``: (the fit's value, its standard error, the chain's sd), the same for every
+    target; without it, like the cases run before they were recorded."""
     targets = {}
     for k, pit in zip(("beta", "cf_con", "d", "cf_out*cf_in^5"), pits, strict=True):
         targets[k] = {"truth": 1.0, "pit": pit, "in_50": 0.25 <= pit <= 0.75,
                       "in_90": 0.05 <= pit <= 0.95}  # fmt: skip
+        if fit is not None:
+            targets[k].update(fit_value=fit[0], fit_se=fit[1], sd=fit[2])
     result = {"case_id": cid, "kind": "null", "hidden_effects": [], "steps": {},
               "fit_chi2n": {"fit_1": 1.0}, "converged": converged, "targets": targets}  # fmt: skip
     if seed is not None:
@@ -126,6 +131,54 @@ def test_width_ratio_from_the_pits(coverage):
     s, lo, hi = coverage.width_ratio(rng.uniform(size=400))
     assert lo < 1.0 < hi
     assert all(np.isnan(coverage.width_ratio([])))
+
+
+def test_target_estimates_by_hand(coverage, tmp_path):
+    """The fit's targets and standard errors: the product's by the delta method on its
+    logarithm, computed by hand; a parameter without a standard error (None, as
+    metrics.json writes one the data do not determine) does not spoil the product; read
+    from a fit folder's metrics.json, and {} without one."""
+    params = {"beta": 5e8, "cf_con": 20.0, "d": 400.0, "cf_in": 2.0, "cf_out": 3.0}
+    free = ["beta", "cf_in", "cf_out", "d"]
+    stderr = {"beta": None, "cf_in": 0.1, "cf_out": 0.3, "d": 40.0}
+    corr = [[1.0, 0.2, 0.1, 0.0], [0.2, 1.0, -0.5, 0.0], [0.1, -0.5, 1.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0]]  # fmt: skip
+    val, se = coverage.target_estimates(params, stderr, corr, free)
+    # var(log P) = (5 * 0.1 / 2)^2 + (0.3 / 3)^2 + 2 (5 / 2)(1 / 3)(-0.5)(0.1)(0.3)
+    #            = 0.0625 + 0.01 - 0.025 = 0.0475
+    assert val["cf_out*cf_in^5"] == pytest.approx(96.0)
+    assert se["cf_out*cf_in^5"] == pytest.approx(96.0 * 0.0475**0.5, rel=1e-12)
+    assert se["d"] == 40.0 and np.isnan(se["beta"]) and np.isnan(se["cf_con"])
+    metrics = {"params": params, "stderr": stderr,
+               "correlation": {"names": free, "matrix": corr}}  # fmt: skip
+    (tmp_path / "fit").mkdir()
+    (tmp_path / "fit" / "metrics.json").write_text(json.dumps(metrics))
+    est = coverage._fit_estimates(tmp_path)
+    assert est["cf_out*cf_in^5"]["se"] == pytest.approx(96.0 * 0.0475**0.5, rel=1e-12)
+    assert est["d"] == {"value": 400.0, "se": 40.0}
+    assert coverage._fit_estimates(tmp_path / "elsewhere") == {}
+
+
+def test_report_separates_the_fit_from_the_chain(coverage, tmp_path):
+    """Cases that recorded the fit's standard errors get the table of the fit's own z
+    and the chain's width over the fit's; cases without them are left out of it, and a
+    set with none has no such table."""
+    out, to = tmp_path / "runs", tmp_path / "report"
+    _case(out, "case_000", [0.5] * 4, fit=(1.5, 0.5, 0.45))  # z = +1, sd / se 0.9
+    _case(out, "case_001", [0.5] * 4, fit=(0.7, 0.1, 0.11))  # z = -3, sd / se 1.1
+    _case(out, "case_002", [0.5] * 4)  # run before the fit's errors were recorded
+    text = coverage.report(out, to)
+    rows = [ln for ln in text.splitlines() if ln.startswith("| d | 2 |")]
+    assert len(rows) == 1
+    cells = [c.strip() for c in rows[0].strip("|").split("|")]
+    # rms sqrt((1 + 9) / 2) = 2.24, its interval from chi-square on 2 degrees of
+    # freedom, mean -1, median of 0.9 and 1.1 = 1.0
+    from scipy import stats
+
+    lo, hi = (np.sqrt(10.0 / stats.chi2.ppf(q, 2)) for q in (0.975, 0.025))
+    assert cells[2:] == ["2.24", f"[{lo:.2f}, {hi:.2f}]", "-1.00", "1.00", "0.90-1.10"]
+    _case(tmp_path / "old", "case_000", [0.5] * 4)
+    assert "The fit and the chain apart" not in coverage.report(tmp_path / "old", to)
 
 
 # ~145 s (two runs of a study script): out of CI's time since 2026-12-04; the study
