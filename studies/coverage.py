@@ -31,7 +31,11 @@ converged; and how much wider the intervals would have to be, from the PITs: see
 fit's value and standard error of every target (from its ``metrics.json``) and the
 chain's mean and standard deviation, so that the report can tell a miss of the fit (its
 own ``z`` too wide) from one of the chain (narrower than the fit's standard error);
-cases run before 2026-12-05 lack them.
+cases run before 2026-12-05 lack them, and ``refit`` adds them to committed records by
+fitting their data again, only where the new fit is the recorded one (:func:`refit`)::
+
+    python studies/coverage.py refit studies/results/coverage_s18_fixed/cases --seed 18 \
+        --out runs/cov18_refit
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ import shutil
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 
 import matplotlib
 
@@ -94,27 +99,40 @@ def _fit_estimates(res_dir: pathlib.Path) -> dict[str, dict[str, float]]:
     return {k: {"value": val[k], "se": se[k]} for k in TARGETS}
 
 
-def run_case(spec: dict, data: pathlib.Path, out: pathlib.Path, args) -> dict:
-    """Generate (if needed), fit and sample one case; write and return ``result.json``."""
+#: ``jaxlift`` in a process of its own (-P: see detection_power.py).
+JAXLIFT = [sys.executable, "-P", "-m", "jaxlift"]
+
+
+def _fit_case(spec: dict, data: pathlib.Path, out: pathlib.Path) -> tuple[list[str], dict]:
+    """Generate (if needed) and fit one case into ``out/CASE/fit`` (a fit of an earlier
+    sitting is reused); return the logs' paths and the fit step's record."""
     gen.write_case(spec, data, verbose=False)
     case, res_dir = data / spec["case_id"], out / spec["case_id"]
     res_dir.mkdir(parents=True, exist_ok=True)
     logs = [str(case / "fit_1.csv"), str(case / "fit_2.csv")]
-    eff = ["--effects", ",".join(spec["hidden_effects"])] if spec["hidden_effects"] else []
-    jl = [sys.executable, "-P", "-m", "jaxlift"]  # -P: see detection_power.py
+    if (res_dir / "fit" / "params.json").exists():
+        return logs, {"rc": 0, "tail": "the fit of an earlier sitting, reused"}
+    fit = subprocess.run(
+        [*JAXLIFT, "fit", *logs, *_effects_option(spec), "--out", str(res_dir / "fit")],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    if (res_dir / "posterior").exists():  # a chain of another fit: not resumable
+        shutil.rmtree(res_dir / "posterior")
+    return logs, {"rc": fit.returncode, "tail": fit.stdout[-600:] + fit.stderr[-600:]}
+
+
+def _effects_option(spec: dict) -> list[str]:
+    return ["--effects", ",".join(spec["hidden_effects"])] if spec["hidden_effects"] else []
+
+
+def run_case(spec: dict, data: pathlib.Path, out: pathlib.Path, args) -> dict:
+    """Generate (if needed), fit and sample one case; write and return ``result.json``."""
     t0 = time.perf_counter()
-    steps = {}
+    case, res_dir = data / spec["case_id"], out / spec["case_id"]
     params = res_dir / "fit" / "params.json"
-    if params.exists():  # a sitting stopped during the posterior: resume its chain
-        steps["fit"] = {"rc": 0, "tail": "the fit of an earlier sitting, reused"}
-    else:
-        fit = subprocess.run(
-            [*jl, "fit", *logs, *eff, "--out", str(res_dir / "fit")],
-            capture_output=True, text=True,
-        )  # fmt: skip
-        steps["fit"] = {"rc": fit.returncode, "tail": fit.stdout[-600:] + fit.stderr[-600:]}
-        if (res_dir / "posterior").exists():  # a chain of another fit: not resumable
-            shutil.rmtree(res_dir / "posterior")
+    logs, fit_step = _fit_case(spec, data, out)
+    steps = {"fit": fit_step}
+    eff = _effects_option(spec)
     result = {"case_id": spec["case_id"], "seed": spec["seed"], "kind": spec["kind"],
               "hidden_effects": spec["hidden_effects"], "steps": steps}  # fmt: skip
     chi2n = _fit_chi2n(res_dir)
@@ -122,7 +140,7 @@ def run_case(spec: dict, data: pathlib.Path, out: pathlib.Path, args) -> dict:
         result["fit_chi2n"] = chi2n
     fit_est = _fit_estimates(res_dir)
     if params.exists():
-        post_cmd = [*jl, "posterior", *logs, *eff, "--params", str(params),
+        post_cmd = [*JAXLIFT, "posterior", *logs, *eff, "--params", str(params),
                     "--max-steps", str(args.max_steps), "--predictive", "8",
                     "--out", str(res_dir / "posterior")]  # fmt: skip
         if args.conditional:
@@ -163,6 +181,47 @@ def run_case(spec: dict, data: pathlib.Path, out: pathlib.Path, args) -> dict:
     result["wall_s"] = round(time.perf_counter() - t0, 1)
     (res_dir / "result.json").write_text(json.dumps(result, indent=1))
     return result
+
+
+def refit(records: pathlib.Path, seed: int, out: pathlib.Path) -> Iterator[str]:
+    """Add the fit's value and standard error of each target to the committed records in
+    ``records`` that lack them (cases run before 2026-12-05), by fitting their data again
+    (``jaxlift fit`` from nominal values, as the study does, into ``out``; resumable).
+    A record gets them only where the new fit reproduces its recorded chi2/N on every
+    fitted log within a relative 1e-3 (the same fit, so the recorded chain was sampled
+    around it); the others are left as they were. Yields a line per case, as it goes. The
+    record notes the library the new fit ran on (``fit_estimates_from``)."""
+    specs = {s["case_id"]: s for s in cases(seed)}
+    library = _library()
+    for path in sorted(records.glob("case_*.json")):
+        r = json.loads(path.read_text())
+        targets = r.get("targets") or {}
+        if not targets or all("fit_se" in t for t in targets.values()):
+            continue
+        if r.get("seed", SEED) != seed:
+            raise ValueError(f"{path}: a case of set {r.get('seed', SEED)}, not of set {seed}")
+        _, step = _fit_case(specs[r["case_id"]], out / "data", out)
+        old = r.get("fit_chi2n") or _fit_chi2n(path.with_suffix(""), r["steps"]["fit"]["tail"])
+        new = _fit_chi2n(out / r["case_id"])
+        same = bool(old) and set(old) == set(new)
+        same = same and all(abs(new[k] - old[k]) <= 1e-3 * old[k] for k in old)
+        est = _fit_estimates(out / r["case_id"]) if same else {}
+        if not est:
+            why = "the fit failed" if step["rc"] != 0 else f"chi2/N {old} then, now {new}"
+            yield f"{r['case_id']}: not the recorded fit ({why}); left without"
+            continue
+        for k, t in targets.items():
+            t["fit_value"], t["fit_se"] = est[k]["value"], est[k]["se"]
+        r["fit_estimates_from"] = {"library": library, "fit_chi2n": new}
+        path.write_text(json.dumps(r, indent=1))
+        yield f"{r['case_id']}: fit reproduced (chi2/N {new}); estimates added"
+
+
+def _library() -> str:
+    """The git tree of the jaxlift the study's processes import (detection_power.py)."""
+    from detection_power import _jaxlift_library  # imports jax: only when asked
+
+    return _jaxlift_library()
 
 
 def _fit_chi2n(res_dir: pathlib.Path, fit_tail: str = "") -> dict[str, float]:
@@ -413,7 +472,7 @@ def _fit_and_chain(usable: list[dict]) -> list[str]:
             continue
         z = np.array([(t["fit_value"] - t["truth"]) / t["fit_se"] for t in rs])
         rms, lo, hi = rms_with_interval(z)
-        ratio = np.array([t["sd"] / t["fit_se"] for t in rs])
+        ratio = np.array([_chain_sd(t) / t["fit_se"] for t in rs])
         rows.append(
             f"| {k} | {z.size} | {rms:.2f} | [{lo:.2f}, {hi:.2f}] | "
             f"{np.mean(z):+.2f} | {np.median(ratio):.2f} | {ratio.min():.2f}-{ratio.max():.2f} |"
@@ -425,7 +484,8 @@ def _fit_and_chain(usable: list[dict]) -> list[str]:
         "errors): the fit's own `z = (fit - truth) / se` (rms 1 when its standard errors "
         "are right and it is unbiased; mean 0 when unbiased) and the chain's standard "
         "deviation over the fit's standard error (1 when the posterior is as wide as "
-        "the fit says).",
+        "the fit says; for cases run before 2026-12-05, which did not record the "
+        "chain's standard deviation, it is read as the 90 % interval's width / 3.29).",
         "",
         "| parameter | n | fit: rms z | 95 % CI | fit: mean z | chain sd / fit se: median "
         "| range |",
@@ -433,6 +493,16 @@ def _fit_and_chain(usable: list[dict]) -> list[str]:
         *rows,
         "",
     ]
+
+
+def _chain_sd(target: dict) -> float:
+    """The chain's standard deviation of a target: recorded since 2026-12-05; before,
+    read from its 90 % central interval as width / (2 * 1.645), exact for a normal
+    posterior."""
+    if "sd" in target:
+        return float(target["sd"])
+    lo, hi = target["interval_90"]
+    return (hi - lo) / (2 * stats.norm.ppf(0.95))
 
 
 def _per_set(usable: list[dict], seeds: list[int]) -> list[str]:
@@ -471,6 +541,10 @@ def main(argv=None) -> int:
     r.add_argument(
         "--move", default=None, help="the posterior's emcee proposal (default: the command's)"
     )
+    f = sub.add_parser("refit", help="add the fit's estimates to committed records that lack them")
+    f.add_argument("records", help="a folder of committed case_*.json")
+    f.add_argument("--seed", type=int, required=True, help="the set the records are of")
+    f.add_argument("--out", default="runs/coverage_refit")
     q = sub.add_parser("report")
     q.add_argument(
         "--out",
@@ -482,6 +556,10 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.cmd == "report":
         print(report([pathlib.Path(o) for o in args.out], pathlib.Path(args.to)))
+        return 0
+    if args.cmd == "refit":
+        for line in refit(pathlib.Path(args.records), args.seed, pathlib.Path(args.out)):
+            print(line, flush=True)
         return 0
     out = pathlib.Path(args.out)
     specs = cases(args.seed)

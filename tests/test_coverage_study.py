@@ -181,6 +181,61 @@ def test_report_separates_the_fit_from_the_chain(coverage, tmp_path):
     assert "The fit and the chain apart" not in coverage.report(tmp_path / "old", to)
 
 
+def test_refit_adds_the_fit_only_where_it_is_the_recorded_one(coverage, tmp_path, monkeypatch):
+    """``refit`` gives committed records the fit's estimates where a new fit reproduces
+    the recorded chi2/N (within 1e-3), leaves the others as they were, skips records
+    that have them; the report then reads the chain's sd from the 90 % interval
+    (width / 3.29) for records that did not store it."""
+    records, out = tmp_path / "cases", tmp_path / "runs"
+    records.mkdir()
+    for cid in ("case_000", "case_001"):
+        targets = {k: {"truth": 1.0, "pit": 0.5, "in_50": True, "in_90": True,
+                       "interval_90": [0.9, 1.1 + 2 * 1.6448536269514722 * 0.05]}
+                   for k in ("beta", "cf_con", "d", "cf_out*cf_in^5")}  # fmt: skip
+        rec = {"case_id": cid, "seed": 18, "kind": "null", "hidden_effects": [],
+               "steps": {"fit": {"rc": 0, "tail": ""}}, "fit_chi2n": {"fit_1": 1.0},
+               "converged": True, "targets": targets}  # fmt: skip
+        (records / f"{cid}.json").write_text(json.dumps(rec))
+    new_chi2 = {"case_000": 1.0002, "case_001": 1.01}  # the second: another fit
+    calls = []
+
+    def fake_fit(spec, data, where):
+        calls.append(spec["case_id"])
+        fit = where / spec["case_id"] / "fit"
+        fit.mkdir(parents=True, exist_ok=True)
+        metrics = {
+            "logs": {"fit_1": {"role": "fitted",
+                               "after": {"chi2_per_sample": new_chi2[spec["case_id"]]}}},
+            "params": {"beta": 1.3, "cf_con": 1.3, "d": 1.3, "cf_in": 1.0, "cf_out": 1.3},
+            "stderr": {"beta": 0.1, "cf_con": 0.1, "d": 0.1, "cf_in": 1e-9, "cf_out": 0.1},
+            "correlation": {"names": ["beta", "cf_con", "d", "cf_in", "cf_out"],
+                            "matrix": np.eye(5).tolist()},
+        }  # fmt: skip
+        (fit / "metrics.json").write_text(json.dumps(metrics))
+        return [], {"rc": 0, "tail": ""}
+
+    monkeypatch.setattr(coverage, "_fit_case", fake_fit)
+    monkeypatch.setattr(coverage, "_library", lambda: "abc1234")
+    monkeypatch.setattr(coverage, "cases", lambda seed: [
+        {"case_id": c, "hidden_effects": []} for c in ("case_000", "case_001")])  # fmt: skip
+    lines = list(coverage.refit(records, 18, out))
+    assert [ln.split(":")[0] for ln in lines] == ["case_000", "case_001"]
+    assert "estimates added" in lines[0] and "left without" in lines[1]
+    r0 = json.loads((records / "case_000.json").read_text())
+    r1 = json.loads((records / "case_001.json").read_text())
+    assert r0["fit_estimates_from"] == {"library": "abc1234", "fit_chi2n": {"fit_1": 1.0002}}
+    assert r0["targets"]["d"]["fit_value"] == 1.3 and r0["targets"]["d"]["fit_se"] == 0.1
+    assert "fit_estimates_from" not in r1 and "fit_se" not in r1["targets"]["d"]
+    calls.clear()
+    assert [ln.split(":")[0] for ln in coverage.refit(records, 18, out)] == ["case_001"]
+    # the chain's sd from the interval: (0.2 + 2 * 1.645 * 0.05) / 3.29 = 0.1108; over
+    # the fit's 0.1: 1.11; the fit's z = (1.3 - 1) / 0.1 = 3
+    text = coverage.report(records, tmp_path / "report")
+    row = next(ln for ln in text.splitlines() if ln.startswith("| d | 1 |"))
+    cells = [c.strip() for c in row.split("|")]
+    assert cells[3] == "3.00" and cells[5] == "+3.00" and cells[6] == "1.11"
+
+
 # ~145 s (two runs of a study script): out of CI's time since 2026-12-04; the study
 # scripts' shared pieces stay checked above. Run with -m extended.
 @pytest.mark.extended
