@@ -101,7 +101,10 @@ def run_case(
     diag = res_dir / "diagnosis" / "diagnosis.json"
     if rc == 0 and diag.exists():
         d = json.loads(diag.read_text())
-        kept = [v for v in d["verdicts"] if v not in d["dropped"]]
+        # "kept" since the newcomer's own backward check (2026-12-06): an effect dropped
+        # in one step and named again later is kept; before it, the verdicts minus the
+        # dropped ones
+        kept = d["kept"] if "kept" in d else [v for v in d["verdicts"] if v not in d["dropped"]]
         result.update(
             found=kept,
             final_verdict=d.get("final_verdict", "none"),

@@ -838,6 +838,11 @@ def _heldout_chi2(params: Mapping[str, float], effects, validate_logs) -> float 
     return float(np.mean(list(chi2n.values()))) if chi2n else math.inf
 
 
+#: :func:`diagnose_iteratively`: how many steps may be repeated because their newcomer
+#: was dropped again (it only completed the fit of the model without it)
+MAX_REPEATS = 2
+
+
 def diagnose_iteratively(
     logs: Sequence[Log],
     validate_logs: Sequence[Log] = (),
@@ -861,7 +866,11 @@ def diagnose_iteratively(
     ``bic_threshold`` without it, the newcomer explains its part of the data and it is
     dropped (recorded in :attr:`Diagnosis.dropped`). Forward selection alone keeps an
     effect that was chosen early because it mimicked the real one (a pure delay for a
-    motor lag).
+    motor lag). Then the newcomer itself is checked the same way: if the model without
+    it, refitted from its refit's values, fits as well (BIC change below
+    ``bic_threshold``), the step's base fit had not reached its optimum and the
+    newcomer only completed it; it is dropped (also in :attr:`Diagnosis.dropped`, of
+    the step that named it) and the step is repeated from that better fit.
 
     ``base``: a fit of the first step's model (its effects are the starting model),
     instead of fitting it here.
@@ -892,7 +901,8 @@ def diagnose_iteratively(
     say = progress or (lambda _s: None)
     steps: list[Diagnosis] = []
     effects: list[str] = [] if base is None else list(base.effects)
-    for _ in range(max_effects + 1):
+    repeated = 0  # steps repeated after their newcomer was dropped again (below)
+    while len(steps) < max_effects + 1 + repeated:
         d = diagnose(logs, validate_logs, base_effects=effects, base=base, progress=progress,
                      bic_threshold=bic_threshold, **kwargs)  # fmt: skip
         steps.append(d)
@@ -910,8 +920,39 @@ def diagnose_iteratively(
             d.dropped[name] = dbic
             effects = [e for e in effects if e != name]
             base = reduced
+        # and the newcomer itself, after the earlier ones (so that it is not dropped in
+        # favour of one that only mimicked it): refitted without it from its refit's
+        # values, does the model fit as well? Then the step's base fit had not reached
+        # its own optimum, and the newcomer's refit only completed that fit, which the
+        # BIC and the held-out logs credited to the effect. Measured (detection study,
+        # case_092, motor droop and leakage hidden, library 992621e): the model with
+        # both ended at chi2/N 1.0064 and 0.9998 (held-out 1.0136) where another
+        # library's fit of the same logs reached 1.0058 and 0.9990 (held-out 0.9983);
+        # the next step's input_delay and motor_inertia both took it there ("chi2/N
+        # 1 -> 1", dBIC -23.8 and -23.0) and the held-out logs named input_delay. The
+        # step is then repeated from the better fit; it does not count against
+        # max_effects. Each repeat starts from a fit whose BIC is lower than the base's
+        # before (within the threshold of the newcomer's, which was below that by more),
+        # and at most MAX_REPEATS are made: after them a newcomer is kept as before.
+        drop = None
+        if repeated < MAX_REPEATS:
+            drop = backward_check(base, logs, [d.verdict], kwargs.get("free", "all"),
+                                  kwargs.get("seed", 0), kwargs.get("workers"))  # fmt: skip
+        if drop is not None and drop[1] < bic_threshold:
+            name, dbic, reduced = drop
+            say(
+                f"backward check: refitted without {name} from its values, BIC changes by "
+                f"{dbic:+.1f}: the model without it had not reached its optimum; {name} "
+                "dropped, the step repeated from the better fit"
+            )
+            d.dropped[name] = dbic
+            effects = [e for e in effects if e != name]
+            base = reduced
+            repeated += 1
     last = steps[-1]
-    room = max_effects - len(found_effects(steps))
+    # (an effect dropped again by the backward check counts, as it always has; a
+    # newcomer dropped again does not: its step was repeated)
+    room = max_effects - len(found_effects(steps)) + repeated
     misfit0 = None  # the final model's misfit when it ends on none (computed once)
     if lookahead and last.verdict == "none" and last.partial and room >= 2:
         usable, _ = usable_heldout(logs, validate_logs)
@@ -924,7 +965,10 @@ def diagnose_iteratively(
                 base=fit0, progress=progress, lookahead=False, cross_validation=False,
                 **kwargs,
             )  # fmt: skip
-            ends, after = final_verdict(more), found_effects(more)
+            ends = final_verdict(more)
+            after = [
+                e for d in more if (e := d.verdict) not in NOT_AN_EFFECT and e not in d.dropped
+            ]
             if ends == "undecided" and more[-1].undecided_fits:
                 # the second effect is there, only which of two candidates it is cannot
                 # be told (measured, case_014: after hose compliance, a 13 ms input delay
@@ -955,7 +999,7 @@ def diagnose_iteratively(
                 return [*steps, *more]
             why = (
                 f"{s0.effect} ({s0.not_kept}) was added provisionally; the iteration then ended "
-                f"{ends} after {', '.join(found_effects(more)) or 'nothing'}"
+                f"{ends} after {', '.join(after) or 'nothing'}"
                 ", not at the noise floor: not kept"
             )
             last.lookahead.append(why)
@@ -1225,6 +1269,19 @@ def found_effects(steps: Sequence[Diagnosis]) -> list[str]:
     """The effects an iterative diagnosis added, in order (including those the
     backward check dropped again: see :attr:`Diagnosis.dropped`)."""
     return [d.verdict for d in steps if d.verdict not in NOT_AN_EFFECT]
+
+
+def kept_effects(steps: Sequence[Diagnosis]) -> list[str]:
+    """The effects an iterative diagnosis kept, in the order they were added: each
+    step's verdict added, then what that step's backward check dropped (an earlier
+    effect, or the newcomer itself) removed, so that an effect dropped in one step and
+    named again later counts."""
+    kept: list[str] = []
+    for d in steps:
+        if d.verdict not in NOT_AN_EFFECT:
+            kept.append(d.verdict)
+        kept = [e for e in kept if e not in d.dropped]
+    return kept
 
 
 def backward_check(

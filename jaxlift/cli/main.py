@@ -96,12 +96,14 @@ def cmd_diagnose(args) -> int:
         shape=args.shape,
         progress=lambda line: print(line, flush=True),
     )
-    from jaxlift.calibrate.diagnose import final_verdict, found_effects
+    from jaxlift.calibrate.diagnose import final_verdict, found_effects, kept_effects
 
-    found = found_effects(steps)
+    found, kept = found_effects(steps), kept_effects(steps)
     print(f"verdict: {steps[0].verdict}")
     if len(steps) > 1:
-        print(f"missing effects, in order: {', '.join(found) or 'none'}")
+        print(f"missing effects, in order: {', '.join(kept) or 'none'}")
+        if dropped := [e for e in found if e not in kept]:
+            print(f"named on the way and dropped again (backward check): {', '.join(dropped)}")
         print(f"final verdict: {final_verdict(steps)}")
     if final_verdict(steps) in ("undecided", "unexplained"):
         print(f"{final_verdict(steps)}: " + "; ".join(steps[-1].reasons))

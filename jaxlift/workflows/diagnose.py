@@ -12,7 +12,13 @@ import numpy as np
 
 from ..analysis.oscillation import oscillation_table, zoom_windows
 from ..analysis.regimes import error_table, segment_log
-from ..calibrate.diagnose import diagnose, diagnose_iteratively, final_verdict, found_effects
+from ..calibrate.diagnose import (
+    diagnose,
+    diagnose_iteratively,
+    final_verdict,
+    found_effects,
+    kept_effects,
+)
 from ..calibrate.fit import estimate_x0_offsets
 from ..calibrate.result import FitResult
 from ..calibrate.shape import estimate_missing_shape
@@ -116,23 +122,28 @@ def run_diagnose(
     x0s = [d.base_fit.x0_offsets for d in steps]
     if steps[-1].winner_fit is not None:
         x0s.append(steps[-1].winner_fit.x0_offsets)
-    labels = ["baseline" + "".join(f" + {x}" for x in e) for e, _ in models]
+    labels: list[str] = []
+    for e, _ in models:
+        label = "baseline" + "".join(f" + {x}" for x in e)
+        while label in labels:  # the same effects refitted: a newcomer dropped again
+            label += " (refitted)"
+        labels.append(label)
     # a log that one of the models cannot simulate (a held-out log under the baseline,
     # say) is named with the reason and left out of the per-log sections below
     failed: dict[str, dict[str, str]] = {}
-    sims = {}
+    sims = []  # per model, in the order of ``models``
     for (e, p), x0, label in zip(models, x0s, labels):
         why: dict[str, str] = {}
         x0 = {**estimate_x0_offsets(p, e, validate_logs), **x0}
-        sims[tuple(e)] = simulate_logs(p, e, all_logs, x0, failures=why)
+        sims.append(simulate_logs(p, e, all_logs, x0, failures=why))
         for name, msg in why.items():
             failed.setdefault(name, {})[label] = msg
     error_rows = []
-    for (e, _p), label in zip(models, labels):
+    for k, label in enumerate(labels):
         row = {"model": label}
         for i, lg in enumerate(all_logs):
             role = "fit" if i < len(logs) else "held-out"
-            sim = sims[tuple(e)][i]
+            sim = sims[k][i]
             row[f"{lg.name} ({role}) chi2/N"] = (
                 chi2n(lg, sim) if sim is not None else "simulation failed"
             )
@@ -154,6 +165,9 @@ def run_diagnose(
         "undecided_between": last.undecided_between,
         "reasons": last.reasons,
         "dropped": dropped,
+        # the effects kept, in order (an effect dropped in one step and named again
+        # later counts): what the verdicts minus the dropped ones give otherwise
+        "kept": kept_effects(steps),
         "ranking": first.as_dict()["ranking"],
         "steps": [d.as_dict() for d in steps],
         "errors_by_step": error_rows,
@@ -163,7 +177,7 @@ def run_diagnose(
         "simulation_failures": failed,
     }
     rep = Report("jaxlift diagnosis: which physical effect is missing?")
-    missing = ", ".join(f"**{v}**" for v in verdicts if v not in dropped) or "**none**"
+    missing = ", ".join(f"**{v}**" for v in kept_effects(steps)) or "**none**"
     rep.text(
         f"Fitted logs: {', '.join(f'`{lg.name}`' for lg in logs)}; held out: "
         f"{', '.join(f'`{lg.name}`' for lg in validate_logs) or 'none'}. "
@@ -198,6 +212,15 @@ def run_diagnose(
             f"verdict: {d.verdict}"
         )
         for name, dbic in d.dropped.items():
+            if name == d.verdict:  # the newcomer itself (diagnose_iteratively)
+                rep.text(
+                    f"Backward check of **{name}** itself: refitted without it from its "
+                    f"values, the model changes the BIC by only {dbic:+.1f} (< 10): the "
+                    f"step's model had not reached its own optimum, and {name}'s refit "
+                    "only completed that fit. It is dropped, and the step is repeated "
+                    "from the better fit."
+                )
+                continue
             rep.text(
                 f"Backward check after adding {d.verdict}: without **{name}** the BIC "
                 f"changes by only {dbic:+.1f} (< 10): {d.verdict} explains what {name} "
@@ -239,7 +262,7 @@ def run_diagnose(
         "per mast stage. The sensor noise is 0.5 mm (height) and 3.2 mm/s (speed): groups "
         "well above that hold what the model still misses."
     )
-    final_sims_all = sims[tuple(models[-1][0])]
+    final_sims_all = sims[-1]
     where_rows = []
     for i in shown:
         lg, sim = all_logs[i], final_sims_all[i]
@@ -249,8 +272,7 @@ def run_diagnose(
     rep.table(where_rows, caption="Error of the final model by log, regime and stage.")
     # the signature, on the user's own data, before and after adding the effects
     rep.heading("The physical signature on your data")
-    base_sims = sims[tuple(models[0][0])]
-    final_sims = sims[tuple(models[-1][0])]
+    base_sims, final_sims = sims[0], sims[-1]
     osc = {"baseline": [], labels[-1]: []}
     for i in shown:
         lg = all_logs[i]
