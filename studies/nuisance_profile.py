@@ -2,7 +2,9 @@
 
 Is the marginal posterior's linear nuisance map too narrow along one parameter?
 
-usage: profile.py CASE EFFECTS TARGET   (data in runs/prof/data/CASE, fit in runs/prof/CASE/fit)
+usage: python studies/nuisance_profile.py CASE EFFECTS TARGET
+(logs in runs/prof/data/CASE from coverage.cases(18) and gen.write_case; the fit
+in runs/prof/CASE/fit from `jaxlift fit` on them, as the coverage study runs it)
 
 Along the direction of TARGET's Laplace covariance column (the other sampled parameters at
 their conditional optimum, quadratic drop 0.5 k^2 at k marginal sd), compare:
