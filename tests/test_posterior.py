@@ -35,13 +35,14 @@ DYNAMIC = ("beta", "cf_con", "cf_in", "cf_out", "d")
 WALKERS = 12  # one batch size (6) for every test: one compile of the log-probability
 
 
-def synthetic_logs(seeds=(3, 4), loads=(600.0, 1400.0)):
-    """Two short logs (50 Hz) simulated at TRUTH with docs/model.md's sensor noise."""
+def synthetic_logs(seeds=(3, 4), loads=(600.0, 1400.0), x0s=(0.3, 0.3)):
+    """Two short logs (50 Hz) simulated at TRUTH with docs/model.md's sensor noise,
+    starting at heights ``x0s`` [m] (0: on the bottom stop)."""
     plant, _ = jl.with_params(jl.Plant(), (), TRUTH)
     ts, pwm = ramped_sequence(SECTIONS, dt=0.02)
     logs = []
-    for load, seed in zip(loads, seeds):
-        inputs = jl.Inputs.from_arrays(ts, pwm, np.full_like(ts, load), 0.3)
+    for load, seed, x0 in zip(loads, seeds, x0s, strict=True):
+        inputs = jl.Inputs.from_arrays(ts, pwm, np.full_like(ts, load), x0)
         sol = jl.simulate(plant, (), inputs, rtol=1e-8, atol=(1e-9, 1e-9, 1e-2))
         logs.append(
             jl.to_log(

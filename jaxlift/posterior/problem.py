@@ -89,6 +89,20 @@ INNOVATION_P_MIN = 0.01
 #: 1.4e-2.
 NUISANCE_RCOND = 1e-3
 
+#: A log's initial-height offset whose start lies on the bottom stop, or less than this
+#: many of its standard deviations (``1 / |column of J_phi|``, the rest held) above it,
+#: is held at its least-squares value (:func:`_laplace`): the start is clipped at the
+#: stop (``initial_state``), so the likelihood is one-sided in the offset there (lowering
+#: the start changes nothing, raising it lifts the fork), which the two-sided Laplace
+#: step cannot represent. Found on coverage case_031 (both logs start on the stop): with
+#: jax 0.12.1 the least-squares starts came out at exactly 0 m, where the derivative is
+#: that of raising the start (1), instead of -9e-10 m (jax 0.12.0.1: derivative 0); the
+#: offsets, then free, lowered the Laplace information of ``log cf_out`` (``cf_in``
+#: held) by 25 % while the log-density, whose offsets cannot follow below the stop, fell
+#: as with them held: 1.24 at the product's standard deviation against 0.53 from the
+#: curvature.
+STOP_HOLD_SD = 3.0
+
 #: Names of the per-signal noise scale factors (sampled with ``sample_noise=True``).
 SETTINGS_FILE = "posterior_settings.json"  # a posterior directory's settings (resume, draws)
 NOISE_NAMES = ("noise_height", "noise_speed", "noise_pressure")
@@ -467,11 +481,12 @@ def prepare_posterior(
         motor = []
         say("nuisances held at their least-squares values (conditional posterior)")
     say("Laplace covariance at the optimum (starts the walkers)")
-    problem.cov_theta, a_map, nuis, phi0, held = _laplace(
+    problem.cov_theta, a_map, nuis, phi0, held, on_stop = _laplace(
         problem, motor, conditioning == "marginal"
     )
     problem.nuisance, problem.nuisance_map, problem.nuisance_opt = nuis, a_map, phi0
     problem.ls_info["nuisance_directions_held"] = held
+    problem.ls_info["offsets_held_at_stop"] = on_stop
     problem.ls_info["marginal_sd"] = {
         n: float(math.sqrt(problem.cov_theta[k, k])) for k, n in enumerate(problem.names)
     }
@@ -488,7 +503,7 @@ MISFIT_Z = 3.0
 
 def _laplace(
     problem: PosteriorProblem, motor: Sequence[str], marginal: bool
-) -> tuple[np.ndarray, np.ndarray, tuple[str, ...], np.ndarray, list[dict]]:
+) -> tuple[np.ndarray, np.ndarray, tuple[str, ...], np.ndarray, list[dict], list[str]]:
     """A Laplace covariance at the optimum in the unconstrained coordinates, and the
     nuisances' map: the Gauss--Newton information of the likelihood (forward-mode
     Jacobian ``J = [J_theta, J_phi]`` of the whitened AR(1) innovations through the
@@ -502,8 +517,10 @@ def _laplace(
     others do not move. A direction the data do not constrain (``cf_in`` against
     ``cf_out``) so starts at the prior's width. A noise factor's variance is that of
     its log from the AR(1) likelihood, ``1 / (2 N)`` (N innovations of its signal),
-    independent of the rest. Returns ``(cov_theta, A, nuisance names, nuisance optimum, held
-    nuisance directions)``."""
+    independent of the rest. An offset whose log starts on the bottom stop (or within
+    :data:`STOP_HOLD_SD` of its standard deviations above it) is held. Returns
+    ``(cov_theta, A, nuisance names, nuisance optimum, held nuisance directions, offsets
+    held at the stop)``."""
     names = problem.names
     phys = [k for k, n in enumerate(names) if n not in NOISE_NAMES]
     infos_all = all_param_infos(make_effects(problem.effects))
@@ -537,6 +554,12 @@ def _laplace(
     th0 = jnp.asarray(np.concatenate([problem.theta_opt[phys], phi0]))
     jac = np.asarray(jax.jit(jax.jacfwd(innovations))(th0, args))
     jac = np.where(np.isfinite(jac), jac, 0.0)
+    on_stop = []
+    for i, exp in enumerate(problem.experiments[:n_off]):  # offsets at the stop: held
+        c = float(np.linalg.norm(jac[:, n_th + n_mot + i]))
+        if c == 0.0 or float(exp.inputs.x0) < STOP_HOLD_SD / c:
+            jac[:, n_th + n_mot + i] = 0.0
+            on_stop.append(f"x0@{exp.name}")
     j_th, j_phi = jac[:, :n_th], jac[:, n_th:]
     nuis = tuple(motor) + tuple(f"x0@{e.name}" for e in problem.experiments[:n_off])
     held = []
@@ -546,7 +569,7 @@ def _laplace(
         u, sv, vt = np.linalg.svd(j_phi / col, full_matrices=False)
         keep = sv > NUISANCE_RCOND * sv[0]
         # the pseudo-inverse on the kept directions; the others (and exact zeros: a
-        # nuisance no residual depends on, e.g. an offset held at the bottom stop) stay
+        # nuisance no residual depends on, or an offset held at the bottom stop) stay
         a_map = -((vt[keep].T / sv[keep]) @ (u[:, keep].T @ j_th)) / col[:, None]
         j_th = j_th + j_phi @ a_map
         for s_k, v_k in zip(sv[~keep], vt[~keep], strict=True):
@@ -578,7 +601,7 @@ def _laplace(
             n_k = sum(int(e.y.shape[1]) for e in problem.experiments if k in e.signals)
             cov[j, :] = cov[:, j] = 0.0
             cov[j, j] = 1.0 / (2.0 * max(n_k, 1))
-    return 0.5 * (cov + cov.T), a_map, nuis, phi0, held
+    return 0.5 * (cov + cov.T), a_map, nuis, phi0, held, on_stop
 
 
 def problem_from_settings(settings: Mapping, logs: Sequence[Log]) -> PosteriorProblem:

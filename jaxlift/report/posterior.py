@@ -303,6 +303,13 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
             "their uncertainty reaches the intervals. Fixed at the least-squares values: "
             "every other parameter not sampled."
         )
+        stop = problem.ls_info.get("offsets_held_at_stop", [])
+        if stop:
+            held += (
+                f" Held: {', '.join(f'`{n}`' for n in stop)}, of a log that starts on the "
+                "bottom stop (its likelihood is one-sided there: a lower start changes "
+                "nothing, which the linearised optimum cannot follow)."
+            )
         for direction in problem.ls_info.get("nuisance_directions_held", []):
             mix = " against ".join(f"`{n}`" for n in direction["nuisances"])
             held += (
