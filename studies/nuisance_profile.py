@@ -31,7 +31,7 @@ import jaxlift as jl  # noqa: E402
 from jaxlift.model.build import all_param_infos, make_effects, with_params  # noqa: E402
 from jaxlift.model.params import from_unconstrained, to_unconstrained  # noqa: E402
 from jaxlift.model.simulate import simulate  # noqa: E402
-from jaxlift.posterior.problem import NOISE_NAMES  # noqa: E402
+from jaxlift.posterior.problem import NOISE_NAMES, whitened_innovations  # noqa: E402
 
 case, effects, target = sys.argv[1], [e for e in sys.argv[2].split(",") if e], sys.argv[3]
 logs = [jl.read_log(f"runs/prof/data/{case}/{n}.csv") for n in ("fit_1", "fit_2")]
@@ -83,16 +83,12 @@ def innovations(phi, th):
     values = {info.name: from_unconstrained(info, th[j]) for j, info in enumerate(infos_th)}
     values.update({info.name: from_unconstrained(info, phi[j]) for j, info in enumerate(infos_m)})
     plant, es = with_params(plant0, effs0, values)
-    res = []
-    for i, exp in enumerate(marg.experiments):
-        exp = eqx.tree_at(lambda e: e.inputs.x0, exp, exp.inputs.x0 + phi[len(motor) + i])
-        sol = simulate(plant, es, exp.inputs, adjoint=diffrax.ForwardMode())
-        r = exp.scaled_residuals(sol)
-        for kk in exp.signals:
-            rr, c = r[kk], rho[i, kk]
-            e = jnp.concatenate([rr[:1] * jnp.sqrt(1 - c**2), rr[1:] - c * rr[:-1]])
-            res.append(e / scale[i, kk])
-    return jnp.concatenate(res)
+    exps = [
+        eqx.tree_at(lambda e: e.inputs.x0, exp, exp.inputs.x0 + phi[len(motor) + i])
+        for i, exp in enumerate(marg.experiments)
+    ]
+    sols = [simulate(plant, es, e.inputs, adjoint=diffrax.ForwardMode()) for e in exps]
+    return whitened_innovations(exps, sols, rho, scale)
 
 
 fe = jax.jit(innovations)

@@ -23,8 +23,8 @@ from .problem import (
     NOISE_NAMES,
     SIM_MAX_STEPS,
     PosteriorProblem,
-    move_nuisances,
     noise_info,
+    nuisance_step,
 )
 
 
@@ -46,8 +46,6 @@ def _log_prob_args(problem: PosteriorProblem):
     """The arguments of the jitted log-probability (arrays passed, not closed over:
     13 k closed-over constants made XLA constant-fold for a long time)."""
     plant0, effs0 = problem.model.plant, problem.model.effects
-    n_phys = len(problem.param_names)
-    a_map = np.asarray(problem.nuisance_map, dtype=float).reshape(len(problem.nuisance), n_phys)
     return (
         plant0,
         effs0,
@@ -55,8 +53,7 @@ def _log_prob_args(problem: PosteriorProblem):
         jnp.asarray(problem.rho),
         jnp.asarray(problem.scale),
         jnp.asarray(problem.theta_opt),
-        jnp.asarray(a_map),
-        jnp.asarray(np.asarray(problem.nuisance_opt, dtype=float)),
+        problem.nuisance_args(),
     )
 
 
@@ -71,7 +68,9 @@ def _single_fn(names: tuple[str, ...], effects: tuple[str, ...], prior_key: tupl
     configuration so that a resumed run in the same process compiles nothing new.
     ``nuisance``: the motor parameters and ``x0@<log>`` offsets that move with the
     sampled coordinates (:attr:`PosteriorProblem.nuisance_map`, the marginal
-    posterior); the offsets in the order of the experiments."""
+    posterior, with :attr:`PosteriorProblem.nuisance_steps` Gauss--Newton steps:
+    :func:`~jaxlift.posterior.problem.nuisance_step`); the offsets in the order of the
+    experiments."""
     infos_all = all_param_infos(make_effects(effects))
     infos = [infos_all[n] if n in infos_all else noise_info(n) for n in names]
     priors = [p for _, p in prior_key]
@@ -79,7 +78,7 @@ def _single_fn(names: tuple[str, ...], effects: tuple[str, ...], prior_key: tupl
     noise_idx = {NOISE_NAMES.index(n): k for k, n in enumerate(names) if n in NOISE_NAMES}
 
     def f(theta, args):
-        plant0, effs0, experiments, rho, scale, ref, a_map, phi0 = args
+        plant0, effs0, experiments, rho, scale, ref, nuis_args = args
         xs = [from_unconstrained(info, theta[k]) for k, info in enumerate(infos)]
         inside = jnp.all(jnp.isfinite(theta))
         log_prior = jnp.zeros(())
@@ -91,9 +90,10 @@ def _single_fn(names: tuple[str, ...], effects: tuple[str, ...], prior_key: tupl
         safe = jnp.where(inside, theta, ref)
         values = {names[k]: from_unconstrained(infos[k], safe[k]) for k in phys}
         d_theta = safe[jnp.asarray(phys)] - ref[jnp.asarray(phys)]
-        values, experiments = move_nuisances(
-            values, experiments, d_theta, a_map, phi0, nuisance, infos_all
-        )
+        values, experiments = nuisance_step(
+            plant0, effs0, values, experiments, d_theta, nuis_args, nuisance, infos_all,
+            max_steps,
+        )  # fmt: skip
         plant, effs = with_params(plant0, effs0, values)
         fac = [noise_idx.get(j) for j in range(3)]
         fac = [jnp.ones(()) if k is None else from_unconstrained(infos[k], safe[k]) for k in fac]

@@ -24,8 +24,8 @@ from .problem import (
     SETTINGS_FILE,
     SIM_MAX_STEPS,
     PosteriorProblem,
-    move_nuisances,
     noise_info,
+    nuisance_step,
     nuisance_values,
 )
 
@@ -52,15 +52,12 @@ def predictive(
     plant0, effs0 = problem.model.plant, problem.model.effects
     bs = max(1, min(batch_size, int(np.shape(thetas)[0])))
     fn = _predictive_fn(problem.names, problem.effects, bs, problem.nuisance)
-    n_phys = len(problem.param_names)
-    a_map = np.asarray(problem.nuisance_map, dtype=float).reshape(len(problem.nuisance), n_phys)
     args = (
         plant0,
         effs0,
         problem.experiments,
         jnp.asarray(problem.theta_opt),
-        jnp.asarray(a_map),
-        jnp.asarray(np.asarray(problem.nuisance_opt, dtype=float)),
+        problem.nuisance_args(),
     )
     res = fn(jnp.asarray(thetas), args)
     return [{"height": np.asarray(h), "speed": np.asarray(v), "pressure": np.asarray(p),
@@ -76,12 +73,13 @@ def _predictive_fn(
     phys = [k for k, n in enumerate(names) if n not in NOISE_NAMES]
 
     def one(theta, args):
-        plant0, effs0, experiments, ref, a_map, phi0 = args
+        plant0, effs0, experiments, ref, nuis_args = args
         values = {names[k]: from_unconstrained(infos[k], theta[k]) for k in phys}
         d_theta = theta[jnp.asarray(phys)] - ref[jnp.asarray(phys)]
-        values, experiments = move_nuisances(
-            values, experiments, d_theta, a_map, phi0, nuisance, infos_all
-        )
+        values, experiments = nuisance_step(
+            plant0, effs0, values, experiments, d_theta, nuis_args, nuisance, infos_all,
+            SIM_MAX_STEPS,
+        )  # fmt: skip
         plant, effs = with_params(plant0, effs0, values)
         outs = []
         for exp in experiments:
@@ -111,7 +109,11 @@ def posterior_draws(
     Returns:
         ``(effects, draws)``: the names of the switched-on effects, and ``n`` dicts
         ``{name: value}`` with every model parameter (docs/model.md names, physical units):
-        the sampled ones from the posterior, the others at their calibrated values.
+        the sampled ones from the posterior, the others at their calibrated values;
+        for a marginal posterior the motor set that goes with each draw, on the
+        nuisances' linearised conditional optimum (without the Gauss--Newton step a
+        posterior with ``nuisance_steps`` took: that step simulates the logs, which a
+        posterior directory does not hold).
     """
 
     out = pathlib.Path(out_dir)

@@ -20,7 +20,13 @@ from ..model.params import to_unconstrained
 from ..posterior.air import AIR_THRESHOLD, air_content, air_verdict, mean_working_pressure
 from ..posterior.pointwise import pointwise_groups
 from ..posterior.predictive import predictive
-from ..posterior.problem import NOISE_NAMES, NUISANCE_RCOND, PosteriorProblem
+from ..posterior.problem import (
+    NOISE_NAMES,
+    NUISANCE_RCOND,
+    NUISANCE_STEP_GAIN,
+    PosteriorProblem,
+    largest_step_gain,
+)
 from ..posterior.sampler import SamplerRun, posterior_samples
 from .document import Report
 from .figures import new_figure, with_pyplot_figures
@@ -310,6 +316,22 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
                 "bottom stop (its likelihood is one-sided there: a lower start changes "
                 "nothing, which the linearised optimum cannot follow)."
             )
+        check = problem.ls_info.get("nuisance_check")
+        if check:
+            name, lin, stp = largest_step_gain(check)
+            held += (
+                " Checked: one standard deviation either way along each sampled parameter, "
+                "one Gauss-Newton step of the nuisances from that linearisation gains at "
+                f"most {lin - stp:.2f} in log-likelihood (along `{name}`: a fall of "
+                f"{lin:.2f} on it, {stp:.2f} after the step; a quadratic falls 0.5)."
+            )
+            if problem.nuisance_steps:
+                held += (
+                    f" Above {NUISANCE_STEP_GAIN:g} the linearisation is not trusted: every "
+                    "evaluation of the posterior took that Gauss-Newton step (one more "
+                    "simulation of each log). The motor set given with each draw "
+                    "(`jaxlift.posterior_draws`) is the linearised one, without the step."
+                )
         for direction in problem.ls_info.get("nuisance_directions_held", []):
             mix = " against ".join(f"`{n}`" for n in direction["nuisances"])
             held += (
