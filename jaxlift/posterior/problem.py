@@ -270,17 +270,6 @@ def nuisance_values(settings: Mapping, theta: Float[ArrayLike, " P"]) -> dict[st
     }
 
 
-def move_nuisances(values, experiments, d_theta, a_map, phi0, nuisance, infos_all):
-    """``values`` (a dict, physical) and ``experiments`` with the nuisances moved along
-    their linearised conditional optimum ``phi0 + a_map @ d_theta`` (``d_theta``: the
-    sampled physical coordinates minus their optimum, unconstrained): the motor
-    parameters among ``nuisance`` (in ``values``) and the ``x0@<log>`` offsets (added
-    to the experiments' initial heights, in their order). Traceable (JAX)."""
-    if not nuisance:
-        return values, experiments
-    return set_nuisances(values, experiments, phi0 + a_map @ d_theta, nuisance, infos_all)
-
-
 def set_nuisances(values, experiments, phi, nuisance, infos_all):
     """``values`` and ``experiments`` with the nuisances at ``phi`` (unconstrained motor
     parameters, offset changes [m]; in the order of ``nuisance``). Traceable."""
@@ -304,7 +293,7 @@ def nuisance_step(
 ):
     """The nuisances that go with the sampled coordinates, the one place the
     log-probability and the posterior predictive apply the marginalisation: their
-    linearised conditional optimum (:func:`move_nuisances`) and, when ``nuis_args``
+    linearised conditional optimum ``phi0 + a_map @ d_theta`` and, when ``nuis_args``
     carries the pseudo-inverse ``P = J_phi^+`` of the optimum
     (:attr:`PosteriorProblem.nuisance_steps` = 1), one Gauss--Newton step from there
     with it, ``phi <- phi - P e(theta, phi)`` (``e``: :func:`whitened_innovations`; a
@@ -737,16 +726,16 @@ def nuisance_check(problem: PosteriorProblem, motor: Sequence[str]) -> dict:
     phi0 = np.asarray(problem.nuisance_opt)
     th0 = problem.theta_opt[phys]
 
-    def half_ss(th, phi):
+    def evaluate(th, phi):
+        """Half the sum of squares at ``(th, phi)`` (inf where the simulation fails) and
+        the nuisances after one chord step from ``phi`` (``phi`` where it fails)."""
         e = np.asarray(f(jnp.asarray(np.concatenate([th, phi])), args))
-        return 0.5 * float(e @ e) if np.all(np.isfinite(e)) else math.inf
+        if not np.all(np.isfinite(e)):
+            return math.inf, phi
+        return 0.5 * float(e @ e), phi - pinv @ e
 
-    def step(th, phi):
-        e = np.asarray(f(jnp.asarray(np.concatenate([th, phi])), args))
-        return phi - pinv @ np.where(np.isfinite(e), e, 0.0) if np.all(np.isfinite(e)) else phi
-
-    base = half_ss(th0, phi0)
-    base_step = half_ss(th0, step(th0, phi0))
+    base, phi0_step = evaluate(th0, phi0)
+    base_step = evaluate(th0, phi0_step)[0]
     out = {"linear": {}, "step": {}}
     cov = problem.cov_theta[np.ix_(phys, phys)]
     for j, k in enumerate(phys):
@@ -754,9 +743,9 @@ def nuisance_check(problem: PosteriorProblem, motor: Sequence[str]) -> dict:
         lin, stp = [], []
         for sign in (-1.0, 1.0):
             th = th0 + sign * d
-            phi = phi0 + a_map @ (sign * d)
-            lin.append(half_ss(th, phi) - base)
-            stp.append(half_ss(th, step(th, phi)) - base_step)
+            v_lin, phi_step = evaluate(th, phi0 + a_map @ (sign * d))
+            lin.append(v_lin - base)
+            stp.append(evaluate(th, phi_step)[0] - base_step)
         out["linear"][names[k]], out["step"][names[k]] = lin, stp
     gains = [a - b for n in out["linear"] for a, b in zip(out["linear"][n], out["step"][n])]
     out["linear_ok"] = bool(max(gains) <= NUISANCE_STEP_GAIN)
