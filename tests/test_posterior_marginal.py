@@ -169,6 +169,80 @@ def test_draws_carry_the_motor_set_that_goes_with_them(synthetic, tmp_path):
     assert float(from_unconstrained(problem.infos["beta"], problem.theta_opt[0])) > 0
 
 
+@pytest.mark.slow  # 81 s beside two other jobs on the 2 cores (2026-12-07)
+def test_a_stepped_posterior_gives_tuning_draws_with_the_stepped_motor_set(synthetic, tmp_path):
+    """Where the posterior takes the nuisances' Gauss--Newton step (forced here on the
+    synthetic problem), the motor set that goes with a draw for tuning is the stepped
+    one, which needs the logs: ``write_outputs`` stores the predictive draws with it
+    (group ``motor_draws``) and ``posterior_draws`` takes its draws from there. Checked
+    against one chord step computed apart, through the innovations function of the
+    set-up check; a directory without the group is an error that says what to do."""
+    import jax
+    import xarray as xr
+
+    from jaxlift.model.params import from_unconstrained
+    from jaxlift.posterior.predictive import (
+        MOTOR_DRAWS_GROUP,
+        posterior_draws,
+        predictive_with_motor,
+    )
+    from jaxlift.posterior.problem import NOISE_NAMES, SETTINGS_FILE, innovations_fn
+    from jaxlift.posterior.sampler import sample_posterior
+    from jaxlift.report.posterior import write_outputs
+
+    problem = synthetic
+    motor = [n for n in problem.nuisance if not n.startswith("x0@")]
+    pinv = _laplace(problem, motor, True)[-1]
+    stepped = dataclasses.replace(problem, nuisance_steps=1, nuisance_pinv=pinv)
+    phys = [k for k, n in enumerate(problem.names) if n not in NOISE_NAMES]
+    f, args = innovations_fn(problem, motor, len(problem.nuisance) - len(motor))
+    f = jax.jit(f)
+    a, phi0 = np.asarray(problem.nuisance_map), np.asarray(problem.nuisance_opt)
+    k1 = problem.nuisance.index("k1")
+    k1_info = jl.all_param_infos(())["k1"]
+
+    def k1_step(theta):  # the stepped k1 [physical], computed apart
+        d = theta[phys] - problem.theta_opt[phys]
+        phi = phi0 + a @ d
+        e = np.asarray(f(jnp.asarray(np.concatenate([theta[phys], phi])), args))
+        return float(from_unconstrained(k1_info, (phi - pinv @ e)[k1]))
+
+    # three standard deviations out the step moves k1 off the linear map
+    rng = np.random.default_rng(2)
+    chol = np.linalg.cholesky(problem.cov_theta)
+    far = problem.theta_opt + 3.0 * (chol @ rng.standard_normal((problem.ndim, 2))).T
+    _, lin = predictive_with_motor(problem, far)
+    _, stp = predictive_with_motor(stepped, far)
+    for i, th in enumerate(far):
+        assert lin["k1"][i] == pytest.approx(problem.nuisance_values(th)["k1"], rel=1e-12)
+        moved = abs(stp["k1"][i] - lin["k1"][i])
+        assert abs(stp["k1"][i] - k1_step(th)) < 1e-3 * moved, (stp["k1"][i], lin["k1"][i])
+
+    # through a (short) chain and its outputs, as `jaxlift posterior` writes them
+    run = sample_posterior(stepped, tmp_path / "chain.h5", n_walkers=12, max_steps=12,
+                           seed=0, chunk=12)  # fmt: skip
+    write_outputs(stepped, run, synthetic_logs(), tmp_path, n_predictive=4, n_loglik=0)
+    (tmp_path / SETTINGS_FILE).write_text(json.dumps({"problem": stepped.settings()}))
+    with xr.open_datatree(tmp_path / "posterior.nc", engine="h5netcdf") as dt:
+        stored = dt[MOTOR_DRAWS_GROUP].to_dataset().load()
+    assert stored.sizes["draw"] == 4
+    _, draws = posterior_draws(tmp_path, 6, seed=0)  # more than stored: with replacement
+    for d in draws:
+        i = int(np.argmin(np.abs(stored["beta"].values - d["beta"])))
+        assert d["k1"] == stored["k1"].values[i]
+        theta = np.array([float(jl.to_unconstrained(problem.infos[n], d[n])) if n in d
+                          else 0.0 for n in problem.names])  # fmt: skip
+        assert d["k1"] == pytest.approx(k1_step(theta), rel=1e-6)
+    # a posterior directory that took the step but lacks the group (before 2026-12-07)
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / SETTINGS_FILE).write_text(json.dumps({"problem": stepped.settings()}))
+    post = xr.Dataset({n: (("chain", "draw"), [[1.0]]) for n in problem.names})
+    xr.DataTree.from_dict({"posterior": post}).to_netcdf(old / "posterior.nc", engine="h5netcdf")
+    with pytest.raises(ValueError, match="motor_draws.*resumes"):
+        posterior_draws(old, 2, seed=0)
+
+
 #: Coverage case_031 of studies/coverage.py (set 2, seed 18; null: no hidden effect),
 #: made by the independent generator: logs from the bottom stop, one of which lifts
 #: into the top stage for 13 s at about one motor voltage. The parameters are what

@@ -48,7 +48,18 @@ def predictive(
 ) -> list[dict[str, np.ndarray]]:
     """Simulated height [m], speed [m/s] and gauge pressure [Pa] of every log for each
     draw (unconstrained coordinates), ``[{"height": (D, N), "speed": (D, N),
-    "pressure": (D, N), "ok": (D,)}]`` per log."""
+    "pressure": (D, N), "ok": (D,)}]`` per log. The motor set that went with each
+    draw: :func:`predictive_with_motor`."""
+    return predictive_with_motor(problem, thetas, batch_size)[0]
+
+
+def predictive_with_motor(
+    problem: PosteriorProblem, thetas: Float[ArrayLike, "D P"], batch_size: int = 16
+) -> tuple[list[dict[str, np.ndarray]], dict[str, np.ndarray]]:
+    """:func:`predictive`, and the motor parameters (physical units, ``{name: (D,)}``)
+    each draw was simulated with: for a marginal posterior those of the nuisances'
+    conditional optimum (:func:`~jaxlift.posterior.problem.nuisance_step`, with its
+    Gauss--Newton step where the problem takes it), else the calibrated ones."""
     plant0, effs0 = problem.model.plant, problem.model.effects
     bs = max(1, min(batch_size, int(np.shape(thetas)[0])))
     fn = _predictive_fn(problem.names, problem.effects, bs, problem.nuisance)
@@ -59,9 +70,10 @@ def predictive(
         jnp.asarray(problem.theta_opt),
         problem.nuisance_args(),
     )
-    res = fn(jnp.asarray(thetas), args)
-    return [{"height": np.asarray(h), "speed": np.asarray(v), "pressure": np.asarray(p),
+    res, motor = fn(jnp.asarray(thetas), args)
+    pred = [{"height": np.asarray(h), "speed": np.asarray(v), "pressure": np.asarray(p),
              "ok": np.asarray(ok)} for h, v, p, ok in res]  # fmt: skip
+    return pred, {n: np.asarray(v) for n, v in motor.items()}
 
 
 @functools.lru_cache(maxsize=16)
@@ -85,7 +97,8 @@ def _predictive_fn(
         for exp in experiments:
             sol = simulate(plant, effs, exp.inputs, max_steps=SIM_MAX_STEPS, stability_limit=False)
             outs.append((sol.height, sol.speed, sol.pressure, sol.ok))
-        return outs
+        motor = {n: jnp.asarray(values[n]) for n in nuisance if not n.startswith("x0@")}
+        return outs, motor
 
     return jax.jit(lambda th, a: jax.lax.map(lambda t: one(t, a), th, batch_size=batch_size))
 
@@ -94,6 +107,29 @@ def as_list(sample) -> list[str]:
     if isinstance(sample, str):
         return [s.strip() for s in sample.split(",") if s.strip()]
     return list(sample)
+
+
+#: Group of ``posterior.nc`` holding, for a posterior that took the nuisances'
+#: Gauss--Newton step (``nuisance_steps``), the predictive draws with the motor set each
+#: was simulated with (:func:`motor_draws_dataset`, read by :func:`posterior_draws`).
+MOTOR_DRAWS_GROUP = "motor_draws"
+
+
+def motor_draws_dataset(
+    problem: PosteriorProblem, thetas: Float[ArrayLike, "D P"], motor: dict[str, np.ndarray]
+) -> xr.Dataset:
+    """The draws ``thetas`` (unconstrained) in physical units with the motor set that
+    went with each (:func:`predictive_with_motor`), along a ``draw`` dimension: the
+    group :data:`MOTOR_DRAWS_GROUP` of ``posterior.nc``."""
+    phys = problem.to_physical(np.asarray(thetas))
+    data = {n: ("draw", np.asarray(phys[n], dtype=float)) for n in problem.names}
+    data.update({n: ("draw", np.asarray(v, dtype=float)) for n, v in motor.items()})
+    ds = xr.Dataset(data)
+    ds.attrs["jaxlift_note"] = (
+        "posterior draws with the motor set of the nuisances' conditional optimum after "
+        "one Gauss-Newton step from its linearisation (the posterior took that step)"
+    )
+    return ds
 
 
 def posterior_draws(
@@ -110,10 +146,17 @@ def posterior_draws(
         ``(effects, draws)``: the names of the switched-on effects, and ``n`` dicts
         ``{name: value}`` with every model parameter (docs/model.md names, physical units):
         the sampled ones from the posterior, the others at their calibrated values;
-        for a marginal posterior the motor set that goes with each draw, on the
-        nuisances' linearised conditional optimum (without the Gauss--Newton step a
-        posterior with ``nuisance_steps`` took: that step simulates the logs, which a
-        posterior directory does not hold).
+        for a marginal posterior the motor set that goes with each draw: on the
+        nuisances' linearised conditional optimum, or, for a posterior that took one
+        Gauss--Newton step from it (``nuisance_steps``), the stepped motor set, which
+        needs the logs and was computed for the posterior predictive's draws only: the
+        draws are then taken from those (group :data:`MOTOR_DRAWS_GROUP` of
+        ``posterior.nc``).
+
+    Raises:
+        FileNotFoundError: ``out_dir`` lacks the settings or ``posterior.nc``.
+        ValueError: a posterior that took the step has no stored motor draws (written
+            before 2026-12-07, or with no predictive draws).
     """
 
     out = pathlib.Path(out_dir)
@@ -125,15 +168,29 @@ def posterior_draws(
     with open(settings_path, encoding="utf-8") as fh:
         settings = json.load(fh)["problem"]
     names = [n for n in settings["names"] if n not in NOISE_NAMES]
+    stepped = bool(settings.get("nuisance_steps")) and bool(settings.get("nuisance"))
     with xr.open_datatree(nc, engine="h5netcdf") as tree:
-        post = tree["posterior"].to_dataset()
-        flat = {k: np.asarray(post[k]).ravel() for k in names}
+        if stepped:
+            if MOTOR_DRAWS_GROUP not in tree.children:
+                raise ValueError(
+                    f"{nc}: no group '{MOTOR_DRAWS_GROUP}'. This posterior took a "
+                    "Gauss-Newton step of the motor set (nuisance_steps), whose values "
+                    "need the logs and are written with the predictive draws; run "
+                    f"`jaxlift posterior ... --out {out}` again (it resumes the chain "
+                    "and rewrites the outputs) with --predictive or --loglik-draws above 0"
+                )
+            post = tree[MOTOR_DRAWS_GROUP].to_dataset()
+            keys = [k for k in post.data_vars if k not in NOISE_NAMES]
+            flat = {k: np.asarray(post[k]).ravel() for k in keys}
+        else:
+            post = tree["posterior"].to_dataset()
+            flat = {k: np.asarray(post[k]).ravel() for k in names}
     m = next(iter(flat.values())).size
     rng = np.random.default_rng(seed)
     idx = rng.choice(m, size=n, replace=n > m)
     values = {k: float(v) for k, v in settings["values"].items()}
-    draws = [{**values, **{k: float(flat[k][i]) for k in names}} for i in idx]
-    if settings.get("nuisance"):  # the motor set that goes with each draw (marginal)
+    draws = [{**values, **{k: float(flat[k][i]) for k in flat}} for i in idx]
+    if settings.get("nuisance") and not stepped:  # the motor set of each draw (marginal)
         infos = all_param_infos(make_effects(settings["effects"]))
         for d in draws:
             theta = [

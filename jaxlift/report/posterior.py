@@ -19,7 +19,7 @@ from ..model.log import Log
 from ..model.params import to_unconstrained
 from ..posterior.air import AIR_THRESHOLD, air_content, air_verdict, mean_working_pressure
 from ..posterior.pointwise import pointwise_groups
-from ..posterior.predictive import predictive
+from ..posterior.predictive import MOTOR_DRAWS_GROUP, motor_draws_dataset, predictive_with_motor
 from ..posterior.problem import (
     NOISE_NAMES,
     NUISANCE_RCOND,
@@ -79,7 +79,10 @@ def write_outputs(
     (``n_predictive`` of them, with noise) and ``log_likelihood`` (pointwise per
     second of each log and signal: :mod:`jaxlift.posterior.pointwise`), so that
     ``az.loo`` and ``az.compare`` work on it. ``n_predictive`` draws also make the
-    prediction bands."""
+    prediction bands. Where the problem takes the nuisances' Gauss--Newton step
+    (``nuisance_steps``), the ``max(n_predictive, n_loglik)`` simulated draws and the
+    motor set of each go into the group ``motor_draws`` (read by
+    :func:`~jaxlift.posterior.predictive.posterior_draws`)."""
     figs = out / "figures"
     figs.mkdir(parents=True, exist_ok=True)
     samples, lp, thin = posterior_samples(problem, run.path, run.tau)
@@ -114,8 +117,11 @@ def write_outputs(
         [np.asarray(to_unconstrained(problem.infos[n], flat[idx, k]))
          for k, n in enumerate(problem.names)], axis=-1,
     )  # fmt: skip
-    pred = predictive(problem, thetas)
+    pred, motor = predictive_with_motor(problem, thetas)
     ok = np.all([pr["ok"] for pr in pred], axis=0)
+    if problem.nuisance_steps and np.any(ok):  # the stepped motor set needs the logs
+        motor_ok = {k: v[ok] for k, v in motor.items()}
+        dt[MOTOR_DRAWS_GROUP] = xr.DataTree(motor_draws_dataset(problem, thetas[ok], motor_ok))
     if n_loglik > 0 and np.any(ok):
         groups = pointwise_groups(
             problem, thetas[ok], [{k: v[ok] for k, v in pr.items()} for pr in pred],
@@ -329,8 +335,10 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
                 held += (
                     f" Above {NUISANCE_STEP_GAIN:g} the linearisation is not trusted: every "
                     "evaluation of the posterior took that Gauss-Newton step (one more "
-                    "simulation of each log). The motor set given with each draw "
-                    "(`jaxlift.posterior_draws`) is the linearised one, without the step."
+                    "simulation of each log). The draws with their motor set "
+                    "(`jaxlift.posterior_draws`, for robust tuning) come from the "
+                    "predictive draws, which were simulated with the step (group "
+                    f"`{MOTOR_DRAWS_GROUP}` of posterior.nc)."
                 )
         for direction in problem.ls_info.get("nuisance_directions_held", []):
             mix = " against ".join(f"`{n}`" for n in direction["nuisances"])
