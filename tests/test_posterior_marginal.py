@@ -243,6 +243,54 @@ def test_a_stepped_posterior_gives_tuning_draws_with_the_stepped_motor_set(synth
         posterior_draws(old, 2, seed=0)
 
 
+def test_a_stage_the_logs_never_enter_does_not_move():
+    """Logs that run in stage 2 only, starting 8-10 cm above the stage boundary as both
+    of coverage case_005's did: stage 1's motor map (``k1``, ``z1``) reaches their
+    residuals only through the tail of the stages' tanh blend, at round-off. It must not
+    move with the sampled parameters (on case_005 the column scaling had blown it up:
+    ``log k1`` moved by -1e9 per standard deviation of ``beta`` and every simulation on
+    one side of the optimum failed), and the set-up check must find every point
+    simulated and the linear map good."""
+    from jaxlift.model.constants import X_S1, X_S2
+
+    logs = synthetic_logs(x0s=(X_S1 + 0.08, X_S1 + 0.10))
+    assert all(X_S1 < float(np.min(lg.height_m)) for lg in logs)
+    assert all(float(np.max(lg.height_m)) < X_S2 - 0.1 for lg in logs)
+    marg = prepare_posterior(logs, params=TRUTH)
+    a = np.asarray(marg.nuisance_map)
+    rows = {n: float(np.abs(a[j]).max()) for j, n in enumerate(marg.nuisance)}
+    moved = max(rows["k2"], rows["z2"])  # the stage they run in moves
+    for n in ("k1", "z1", "k3", "z3"):  # as test_nuisances_named_... for stage-1 logs
+        assert rows[n] < 1e-6 * moved, rows
+    check = marg.ls_info["nuisance_check"]
+    assert check["failed"] == [] and check["linear_ok"] and marg.nuisance_steps == 0, check
+
+
+def test_points_whose_simulation_failed_do_not_decide_the_step():
+    """case_005's check before the round-off fix (set 2; 2026-12-07): on one side of
+    every parameter the simulation failed (a fall of inf on the map and after the step);
+    inf - inf is NaN, and Python's ``max`` over a list holding a NaN returns it or not
+    depending on the order, which had switched the step on. The step is decided on the
+    points that were simulated: here it gains nothing (it loses 3.4 along ``kappa``)."""
+    from jaxlift.posterior.problem import NUISANCE_STEP_GAIN, largest_step_gain
+
+    inf = math.inf
+    check = {
+        "linear": {"beta": [inf, 0.533], "cf_con": [0.490, inf], "d": [0.484, inf],
+                   "kappa": [inf, 0.744]},
+        "step": {"beta": [inf, 0.844], "cf_con": [0.814, inf], "d": [0.892, inf],
+                 "kappa": [inf, 4.175]},
+    }  # fmt: skip
+    name, lin, stp = largest_step_gain(check)
+    assert (name, lin, stp) == ("beta", 0.533, 0.844)
+    assert lin - stp <= NUISANCE_STEP_GAIN
+    assert largest_step_gain({"linear": {"d": [inf, inf]}, "step": {"d": [inf, inf]}}) == (
+        "",
+        0.0,
+        0.0,
+    )
+
+
 #: Coverage case_031 of studies/coverage.py (set 2, seed 18; null: no hidden effect),
 #: made by the independent generator: logs from the bottom stop, one of which lifts
 #: into the top stage for 13 s at about one motor voltage. The parameters are what

@@ -89,6 +89,17 @@ INNOVATION_P_MIN = 0.01
 #: 1.4e-2.
 NUISANCE_RCOND = 1e-3
 
+#: A nuisance whose column of ``J_phi`` is shorter than this fraction of the longest is
+#: held (:func:`_laplace`), as one no residual depends on: the motor map of a stage the
+#: logs never enter. The stages blend by ``tanh`` over 5 mm, so a log running 8 cm above
+#: a stage boundary still depends on the stage below's motor map at ~1e-14: found on
+#: coverage case_005 (set 2, both logs above 1.58 m), where ``k1`` and ``z1`` had columns
+#: of 3e-11 and 9e-11 against 1e6 for the others; scaled to unit length they became
+#: noise that the pseudo-inverse kept, the map moved ``log k1`` by -1e9 per standard
+#: deviation of ``beta``, and every simulation on one side of the optimum failed (a
+#: log-probability of -inf: the posterior cut in half at its optimum).
+NUISANCE_ROUNDOFF = 1e-9
+
 #: A log's initial-height offset whose start lies on the bottom stop, or less than this
 #: many of its standard deviations (``1 / |column of J_phi|``, the rest held) above it,
 #: is held at its least-squares value (:func:`_laplace`): the start is clipped at the
@@ -654,7 +665,11 @@ def _laplace(
     held = []
     if j_phi.shape[1]:
         col = np.linalg.norm(j_phi, axis=0)
-        col = np.where(col > 0, col, 1.0)
+        # a nuisance the residuals follow at round-off only is held like an exact zero
+        # (column scaling would blow it up to a unit column of noise)
+        roundoff = col <= NUISANCE_ROUNDOFF * col.max()
+        j_phi[:, roundoff] = 0.0
+        col = np.where(roundoff, 1.0, col)
         u, sv, vt = np.linalg.svd(j_phi / col, full_matrices=False)
         keep = sv > NUISANCE_RCOND * sv[0]
         # the pseudo-inverse on the kept directions; the others (and exact zeros: a
@@ -714,8 +729,10 @@ def nuisance_check(problem: PosteriorProblem, motor: Sequence[str]) -> dict:
     column (the other sampled parameters at their conditional optimum): the fall of the
     log-likelihood with the nuisances on the linear map (``linear``), and after one
     Gauss--Newton step from it (``step``, :func:`nuisance_step`'s). A quadratic falls by
-    0.5. ``linear_ok``: the step gains at most :data:`NUISANCE_STEP_GAIN` everywhere.
-    Costs two simulations of each log per point (4 per parameter)."""
+    0.5. ``linear_ok``: the step gains at most :data:`NUISANCE_STEP_GAIN` everywhere;
+    ``failed``: the points where the simulation on the map failed (a fall of inf, the
+    log-probability -inf there), left out of that decision. Costs two simulations of
+    each log per point (4 per parameter)."""
     names = problem.names
     phys = [k for k, n in enumerate(names) if n not in NOISE_NAMES]
     n_off = len(problem.nuisance) - len(motor)
@@ -747,19 +764,28 @@ def nuisance_check(problem: PosteriorProblem, motor: Sequence[str]) -> dict:
             lin.append(v_lin - base)
             stp.append(evaluate(th, phi_step)[0] - base_step)
         out["linear"][names[k]], out["step"][names[k]] = lin, stp
-    gains = [a - b for n in out["linear"] for a, b in zip(out["linear"][n], out["step"][n])]
-    out["linear_ok"] = bool(max(gains) <= NUISANCE_STEP_GAIN)
+    # where the simulation on the map fails (inf) the step, from the same point, fails
+    # too: no evidence either way (and inf - inf would be NaN); named in ``failed``
+    out["failed"] = [f"{n} {'-+'[j]}1 sd" for n, falls in out["linear"].items()
+                     for j, v in enumerate(falls) if not math.isfinite(v)]  # fmt: skip
+    out["linear_ok"] = bool(_gain(largest_step_gain(out)) <= NUISANCE_STEP_GAIN)
     return out
+
+
+def _gain(point: tuple[str, float, float]) -> float:
+    return point[1] - point[2]
 
 
 def largest_step_gain(check: Mapping) -> tuple[str, float, float]:
     """Where one Gauss--Newton step of the nuisances gained most in
     :func:`nuisance_check`'s result: ``(parameter, fall on the linear map, fall after
-    the step)``."""
+    the step)``, over the points whose simulation on the map succeeded (``("", 0, 0)``
+    if none did)."""
     return max(
         ((n, a, b) for n in check["linear"]
-         for a, b in zip(check["linear"][n], check["step"][n], strict=True)),
-        key=lambda t: t[1] - t[2],
+         for a, b in zip(check["linear"][n], check["step"][n], strict=True)
+         if math.isfinite(a)),
+        key=_gain, default=("", 0.0, 0.0),
     )  # fmt: skip
 
 

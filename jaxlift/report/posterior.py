@@ -331,6 +331,14 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
                 f"most {lin - stp:.2f} in log-likelihood (along `{name}`: a fall of "
                 f"{lin:.2f} on it, {stp:.2f} after the step; a quadratic falls 0.5)."
             )
+            if check.get("failed"):
+                held += (
+                    " **The simulation failed** at " + ", ".join(check["failed"]) + " (along "
+                    "the covariance column): the log-probability is -inf there, so the "
+                    "posterior ends within one standard deviation of the optimum on that "
+                    "side; where the model fits, that is a wall of the solver (its step "
+                    "limit, the mast's range), not of the data."
+                )
             if problem.nuisance_steps:
                 held += (
                     f" Above {NUISANCE_STEP_GAIN:g} the linearisation is not trusted: every "
