@@ -243,6 +243,7 @@ def test_a_stepped_posterior_gives_tuning_draws_with_the_stepped_motor_set(synth
         posterior_draws(old, 2, seed=0)
 
 
+@pytest.mark.slow  # 76 s beside two other jobs on the 2 cores (2026-12-07)
 def test_a_stage_the_logs_never_enter_does_not_move():
     """Logs that run in stage 2 only, starting 8-10 cm above the stage boundary as both
     of coverage case_005's did: stage 1's motor map (``k1``, ``z1``) reaches their
