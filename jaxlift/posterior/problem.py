@@ -97,7 +97,8 @@ NUISANCE_RCOND = 1e-3
 #: of 3e-11 and 9e-11 against 1e6 for the others; scaled to unit length they became
 #: noise that the pseudo-inverse kept, the map moved ``log k1`` by -1e9 per standard
 #: deviation of ``beta``, and every simulation on one side of the optimum failed (a
-#: log-probability of -inf: the posterior cut in half at its optimum).
+#: log-probability of -inf: the posterior cut in half at its optimum, along a direction
+#: the coverage targets barely depend on: re-run, their PITs moved by under 0.02).
 NUISANCE_ROUNDOFF = 1e-9
 
 #: A log's initial-height offset whose start lies on the bottom stop, or less than this
