@@ -323,31 +323,31 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
                 "nothing, which the linearised optimum cannot follow)."
             )
         check = problem.ls_info.get("nuisance_check")
-        if check:
-            name, lin, stp = largest_step_gain(check)
+        name, lin, stp = largest_step_gain(check) if check else ("", 0.0, 0.0)
+        if name:  # (no name: no point of the check was simulated; failed says where)
             held += (
                 " Checked: one standard deviation either way along each sampled parameter, "
                 "one Gauss-Newton step of the nuisances from that linearisation gains at "
                 f"most {lin - stp:.2f} in log-likelihood (along `{name}`: a fall of "
                 f"{lin:.2f} on it, {stp:.2f} after the step; a quadratic falls 0.5)."
             )
-            if check.get("failed"):
-                held += (
-                    " **The simulation failed** at " + ", ".join(check["failed"]) + " (along "
-                    "the covariance column): the log-probability is -inf there, so the "
-                    "posterior ends within one standard deviation of the optimum on that "
-                    "side; where the model fits, that is a wall of the solver (its step "
-                    "limit, the mast's range), not of the data."
-                )
-            if problem.nuisance_steps:
-                held += (
-                    f" Above {NUISANCE_STEP_GAIN:g} the linearisation is not trusted: every "
-                    "evaluation of the posterior took that Gauss-Newton step (one more "
-                    "simulation of each log). The draws with their motor set "
-                    "(`jaxlift.posterior_draws`, for robust tuning) come from the "
-                    "predictive draws, which were simulated with the step (group "
-                    f"`{MOTOR_DRAWS_GROUP}` of posterior.nc)."
-                )
+        if check and check.get("failed"):
+            held += (
+                " **The simulation failed** at " + ", ".join(check["failed"]) + " (along "
+                "the covariance column): the log-probability is -inf there, so the "
+                "posterior ends within one standard deviation of the optimum on that "
+                "side; where the model fits, that is a wall of the solver (its step "
+                "limit, the mast's range), not of the data."
+            )
+        if problem.nuisance_steps:
+            held += (
+                f" Above {NUISANCE_STEP_GAIN:g} the linearisation is not trusted: every "
+                "evaluation of the posterior took that Gauss-Newton step (one more "
+                "simulation of each log). The draws with their motor set "
+                "(`jaxlift.posterior_draws`, for robust tuning) come from the "
+                "predictive draws, which were simulated with the step (group "
+                f"`{MOTOR_DRAWS_GROUP}` of posterior.nc)."
+            )
         for direction in problem.ls_info.get("nuisance_directions_held", []):
             mix = " against ".join(f"`{n}`" for n in direction["nuisances"])
             held += (
