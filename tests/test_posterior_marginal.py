@@ -292,6 +292,39 @@ def test_points_whose_simulation_failed_do_not_decide_the_step():
     )
 
 
+def test_the_report_names_the_points_whose_simulation_failed():
+    """The posterior report's paragraph on the nuisances, for case_005's check above (with
+    ``failed`` as :func:`nuisance_check` lists it) and for a check none of whose points was
+    simulated: the failed points are named, the check's sentence quotes only simulated
+    points (and is left out when there are none), the step's sentence stands on its own."""
+    from jaxlift.posterior.problem import NUISANCE_STEP_GAIN
+    from jaxlift.report.posterior import conditioning_text
+
+    inf = math.inf
+    check = {
+        "linear": {"beta": [inf, 0.533], "kappa": [inf, 0.744]},
+        "step": {"beta": [inf, 0.844], "kappa": [inf, 4.175]},
+        "failed": ["beta -1 sd", "kappa -1 sd"],
+    }
+    nuisance, offsets = ("k2", "z2", "x0@a"), {"a": 1.5e-4}
+    text = conditioning_text(nuisance, offsets, {"nuisance_check": check}, 0)
+    assert "`k2`, `z2`" in text and "`a` +0.150 mm" in text
+    assert "along `beta`: a fall of 0.53 on it, 0.84 after the step" in text
+    assert "**The simulation failed** at beta -1 sd, kappa -1 sd (" in text
+    assert "inf" not in text.replace("-inf there", "") and "nan" not in text
+    assert "every evaluation of the posterior took that Gauss-Newton step" not in text
+
+    none_simulated = {"linear": {"d": [inf, inf]}, "step": {"d": [inf, inf]},
+                      "failed": ["d -1 sd", "d +1 sd"]}  # fmt: skip
+    text = conditioning_text(nuisance, offsets, {"nuisance_check": none_simulated}, 1)
+    assert "Checked:" not in text
+    assert "**The simulation failed** at d -1 sd, d +1 sd (" in text
+    assert f" Above {NUISANCE_STEP_GAIN:g} the linearisation is not trusted: every" in text
+
+    text = conditioning_text((), offsets, {}, 0)
+    assert text.startswith("Fixed at the least-squares values (`--conditional`)")
+
+
 #: Coverage case_031 of studies/coverage.py (set 2, seed 18; null: no hidden effect),
 #: made by the independent generator: logs from the bottom stop, one of which lifts
 #: into the top stage for 13 s at about one motor voltage. The parameters are what

@@ -220,6 +220,7 @@ def _undamped(args) -> bool:
     return args[8].shape[0] == args[6].shape[0] and args[6].shape[0] < args[6].shape[1]
 
 
+@pytest.mark.slow  # fast loop: 34 s and 29 s beside one other worker (measured 2026-12-07)
 def test_damped_passes_move_a_log_whose_gauss_newton_steps_are_all_rejected(monkeypatch):
     """Where the linearisation is poor (measured: a large duty saturation, one log
     stalled at chi2/N 180), every Gauss--Newton step, halved four times, makes the fit
@@ -252,6 +253,7 @@ def test_damped_passes_move_a_log_whose_gauss_newton_steps_are_all_rejected(monk
     assert lg.chi2n_after == pytest.approx(lg.chi2n_before)
 
 
+@pytest.mark.slow  # fast loop: 34 s and 29 s beside one other worker (measured 2026-12-07)
 def test_steps_that_each_raise_the_misfit_a_little_do_not_add_up(monkeypatch):
     """A step may raise a log's chi2/N by 1 % (the smoother trades misfit for
     smoothness), but not 1 % per pass on top of the last: measured on the quadratic drag

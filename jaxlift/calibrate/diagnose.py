@@ -902,6 +902,22 @@ def diagnose_iteratively(
     steps: list[Diagnosis] = []
     effects: list[str] = [] if base is None else list(base.effects)
     repeated = 0  # steps repeated after their newcomer was dropped again (below)
+
+    def drop_one(d: Diagnosis, candidates: list[str]) -> str | None:
+        """Refit without each of ``candidates`` (:func:`backward_check`); where the
+        best of them changes the BIC by less than ``bic_threshold``, drop it from
+        ``effects`` and the step ``d``'s record, move ``base`` to the reduced fit and
+        return its name (else None)."""
+        nonlocal effects, base
+        drop = backward_check(base, logs, candidates, kwargs.get("free", "all"),
+                              kwargs.get("seed", 0), kwargs.get("workers"))  # fmt: skip
+        if drop is None or drop[1] >= bic_threshold:
+            return None
+        name, dbic, base = drop
+        d.dropped[name] = dbic
+        effects = [e for e in effects if e != name]
+        return name
+
     while len(steps) < max_effects + 1 + repeated:
         d = diagnose(logs, validate_logs, base_effects=effects, base=base, progress=progress,
                      bic_threshold=bic_threshold, **kwargs)  # fmt: skip
@@ -910,16 +926,9 @@ def diagnose_iteratively(
             break
         effects = [*effects, d.verdict]
         base = d.winner_fit
-        while len(effects) > 1:
-            drop = backward_check(base, logs, effects[:-1], kwargs.get("free", "all"),
-                                   kwargs.get("seed", 0), kwargs.get("workers"))  # fmt: skip
-            if drop is None or drop[1] >= bic_threshold:
-                break
-            name, dbic, reduced = drop
-            say(f"backward check: without {name} BIC changes by {dbic:+.1f}: dropped")
-            d.dropped[name] = dbic
-            effects = [e for e in effects if e != name]
-            base = reduced
+
+        while len(effects) > 1 and (name := drop_one(d, effects[:-1])) is not None:
+            say(f"backward check: without {name} BIC changes by {d.dropped[name]:+.1f}: dropped")
         # and the newcomer itself, after the earlier ones (so that it is not dropped in
         # favour of one that only mimicked it): refitted without it from its refit's
         # values, does the model fit as well? Then the step's base fit had not reached
@@ -934,20 +943,12 @@ def diagnose_iteratively(
         # max_effects. Each repeat starts from a fit whose BIC is lower than the base's
         # before (within the threshold of the newcomer's, which was below that by more),
         # and at most MAX_REPEATS are made: after them a newcomer is kept as before.
-        drop = None
-        if repeated < MAX_REPEATS:
-            drop = backward_check(base, logs, [d.verdict], kwargs.get("free", "all"),
-                                  kwargs.get("seed", 0), kwargs.get("workers"))  # fmt: skip
-        if drop is not None and drop[1] < bic_threshold:
-            name, dbic, reduced = drop
+        if repeated < MAX_REPEATS and (name := drop_one(d, [d.verdict])) is not None:
             say(
                 f"backward check: refitted without {name} from its values, BIC changes by "
-                f"{dbic:+.1f}: the model without it had not reached its optimum; {name} "
-                "dropped, the step repeated from the better fit"
+                f"{d.dropped[name]:+.1f}: the model without it had not reached its "
+                f"optimum; {name} dropped, the step repeated from the better fit"
             )
-            d.dropped[name] = dbic
-            effects = [e for e in effects if e != name]
-            base = reduced
             repeated += 1
     last = steps[-1]
     # (an effect dropped again by the backward check counts, as it always has; a

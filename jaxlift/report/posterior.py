@@ -226,6 +226,75 @@ def _move_note(settings: dict) -> str:
     return note
 
 
+def conditioning_text(
+    nuisance: tuple[str, ...], x0_offsets: dict, ls_info: dict, nuisance_steps: int
+) -> str:
+    """The report's paragraph on what the intervals are conditional on: the marginalised
+    nuisances (``nuisance``, from :class:`PosteriorProblem`), what is held and why, the
+    check of the linearised nuisance map with its failed points, and the step (or, with
+    no nuisance, the conditional mode). ``x0_offsets`` in m."""
+    offsets = ", ".join(f"`{k}` {v * 1e3:+.3f} mm" for k, v in x0_offsets.items())
+    if nuisance:
+        moving = ", ".join(f"`{n}`" for n in nuisance if not n.startswith("x0@"))
+        held = (
+            f"Marginalised, not fixed: {moving or 'no motor parameter'} and each log's "
+            f"initial-height offset (least squares: {offsets}) move with the sampled "
+            "parameters along their conditional optimum, linearised at the least-squares "
+            "optimum (a Gauss-Newton profile; exact for a model linear in them), so that "
+            "their uncertainty reaches the intervals. Fixed at the least-squares values: "
+            "every other parameter not sampled."
+        )
+        stop = ls_info.get("offsets_held_at_stop", [])
+        if stop:
+            held += (
+                f" Held: {', '.join(f'`{n}`' for n in stop)}, of a log that starts on the "
+                "bottom stop (its likelihood is one-sided there: a lower start changes "
+                "nothing, which the linearised optimum cannot follow)."
+            )
+        check = ls_info.get("nuisance_check")
+        name, lin, stp = largest_step_gain(check) if check else ("", 0.0, 0.0)
+        if name:  # (no name: no point of the check was simulated; failed says where)
+            held += (
+                " Checked: one standard deviation either way along each sampled parameter, "
+                "one Gauss-Newton step of the nuisances from that linearisation gains at "
+                f"most {lin - stp:.2f} in log-likelihood (along `{name}`: a fall of "
+                f"{lin:.2f} on it, {stp:.2f} after the step; a quadratic falls 0.5)."
+            )
+        if check and check.get("failed"):
+            held += (
+                " **The simulation failed** at " + ", ".join(check["failed"]) + " (along "
+                "the covariance column): the log-probability is -inf there, so the "
+                "posterior ends within one standard deviation of the optimum on that "
+                "side; where the model fits, that is a wall of the solver (its step "
+                "limit, the mast's range), not of the data."
+            )
+        if nuisance_steps:
+            held += (
+                f" Above {NUISANCE_STEP_GAIN:g} the linearisation is not trusted: every "
+                "evaluation of the posterior took that Gauss-Newton step (one more "
+                "simulation of each log). The draws with their motor set "
+                "(`jaxlift.posterior_draws`, for robust tuning) come from the "
+                "predictive draws, which were simulated with the step (group "
+                f"`{MOTOR_DRAWS_GROUP}` of posterior.nc)."
+            )
+        for direction in ls_info.get("nuisance_directions_held", []):
+            mix = " against ".join(f"`{n}`" for n in direction["nuisances"])
+            held += (
+                f" Held: the direction of {mix}, which the logs barely determine (singular "
+                f"value {direction['singular_value']:.1e} of the largest; below "
+                f"{NUISANCE_RCOND:g} the linearised optimum is not trusted)."
+            )
+    else:
+        held = (
+            "Fixed at the least-squares values (`--conditional`): all parameters not "
+            "sampled (the motor set among them: the posterior is conditional on the "
+            "calibrated motor map) and each log's initial-height offset: "
+            f"{offsets}. The intervals are conditional on them, and narrower than the "
+            "marginal ones."
+        )
+    return held
+
+
 def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
     rep = Report("jaxlift posterior: how sure are we?")
     conv = (
@@ -304,65 +373,9 @@ def _report(problem, run, logs, out, rows, air, figs, pred_figs, thin, p_mean):
     rep.text(f"Likelihood: {lik}")
     if any(n in NOISE_NAMES for n in problem.names):
         rep.text("Noise-scale factors per signal are sampled (`noise_*`).")
-    offsets = ", ".join(f"`{k}` {v * 1e3:+.3f} mm" for k, v in problem.x0_offsets.items())
-    if problem.nuisance:
-        moving = ", ".join(f"`{n}`" for n in problem.nuisance if not n.startswith("x0@"))
-        held = (
-            f"Marginalised, not fixed: {moving or 'no motor parameter'} and each log's "
-            f"initial-height offset (least squares: {offsets}) move with the sampled "
-            "parameters along their conditional optimum, linearised at the least-squares "
-            "optimum (a Gauss-Newton profile; exact for a model linear in them), so that "
-            "their uncertainty reaches the intervals. Fixed at the least-squares values: "
-            "every other parameter not sampled."
-        )
-        stop = problem.ls_info.get("offsets_held_at_stop", [])
-        if stop:
-            held += (
-                f" Held: {', '.join(f'`{n}`' for n in stop)}, of a log that starts on the "
-                "bottom stop (its likelihood is one-sided there: a lower start changes "
-                "nothing, which the linearised optimum cannot follow)."
-            )
-        check = problem.ls_info.get("nuisance_check")
-        name, lin, stp = largest_step_gain(check) if check else ("", 0.0, 0.0)
-        if name:  # (no name: no point of the check was simulated; failed says where)
-            held += (
-                " Checked: one standard deviation either way along each sampled parameter, "
-                "one Gauss-Newton step of the nuisances from that linearisation gains at "
-                f"most {lin - stp:.2f} in log-likelihood (along `{name}`: a fall of "
-                f"{lin:.2f} on it, {stp:.2f} after the step; a quadratic falls 0.5)."
-            )
-        if check and check.get("failed"):
-            held += (
-                " **The simulation failed** at " + ", ".join(check["failed"]) + " (along "
-                "the covariance column): the log-probability is -inf there, so the "
-                "posterior ends within one standard deviation of the optimum on that "
-                "side; where the model fits, that is a wall of the solver (its step "
-                "limit, the mast's range), not of the data."
-            )
-        if problem.nuisance_steps:
-            held += (
-                f" Above {NUISANCE_STEP_GAIN:g} the linearisation is not trusted: every "
-                "evaluation of the posterior took that Gauss-Newton step (one more "
-                "simulation of each log). The draws with their motor set "
-                "(`jaxlift.posterior_draws`, for robust tuning) come from the "
-                "predictive draws, which were simulated with the step (group "
-                f"`{MOTOR_DRAWS_GROUP}` of posterior.nc)."
-            )
-        for direction in problem.ls_info.get("nuisance_directions_held", []):
-            mix = " against ".join(f"`{n}`" for n in direction["nuisances"])
-            held += (
-                f" Held: the direction of {mix}, which the logs barely determine (singular "
-                f"value {direction['singular_value']:.1e} of the largest; below "
-                f"{NUISANCE_RCOND:g} the linearised optimum is not trusted)."
-            )
-    else:
-        held = (
-            "Fixed at the least-squares values (`--conditional`): all parameters not "
-            "sampled (the motor set among them: the posterior is conditional on the "
-            "calibrated motor map) and each log's initial-height offset: "
-            f"{offsets}. The intervals are conditional on them, and narrower than the "
-            "marginal ones."
-        )
+    held = conditioning_text(
+        problem.nuisance, problem.x0_offsets, problem.ls_info, problem.nuisance_steps
+    )
     rep.text(
         held + " What the intervals leave out: model error. They assume the model (with its "
         "effects) is right; whether it is, is the diagnosis's question (`jaxlift "
