@@ -36,6 +36,15 @@ fitting their data again, only where the new fit is the recorded one (:func:`ref
 
     python studies/coverage.py refit studies/results/coverage_s18_fixed/cases --seed 18 \
         --out runs/cov18_refit
+
+A run's finished cases become committed records with ``collect`` (which adds the library
+they ran on, and whether the posterior took the nuisances' Gauss-Newton step), and
+``compare`` sets records beside earlier ones of the same data sets (a re-run on another
+library)::
+
+    python studies/coverage.py collect runs/cov18step --to studies/results/coverage_s18_step/cases
+    python studies/coverage.py compare studies/results/coverage_s18_fixed/cases \
+        studies/results/coverage_s18_step/cases
 """
 
 from __future__ import annotations
@@ -177,6 +186,8 @@ def run_case(spec: dict, data: pathlib.Path, out: pathlib.Path, args) -> dict:
                     row[f"in_{int(100 * lev)}"] = bool(lo <= t[k] <= hi)
                     row[f"interval_{int(100 * lev)}"] = [float(lo), float(hi)]
                 result["targets"][k] = row
+    result.update(_nuisance_record(res_dir))
+    result["library"] = _library()
     result["conditional"] = bool(args.conditional)
     result["wall_s"] = round(time.perf_counter() - t0, 1)
     (res_dir / "result.json").write_text(json.dumps(result, indent=1))
@@ -215,6 +226,89 @@ def refit(records: pathlib.Path, seed: int, out: pathlib.Path) -> Iterator[str]:
         r["fit_estimates_from"] = {"library": library, "fit_chi2n": new}
         path.write_text(json.dumps(r, indent=1))
         yield f"{r['case_id']}: fit reproduced (chi2/N {new}); estimates added"
+
+
+def collect(runs: pathlib.Path, to: pathlib.Path, library: str | None = None) -> Iterator[str]:
+    """Copy the finished cases of a run folder (``case_*/result.json``) into a folder of
+    committed records (``case_*.json``), adding what the run folder alone tells: the
+    library the case ran on (``library``: the record's own if it has one, else the
+    ``library`` given, the git tree of the jaxlift the run imported, e.g. a frozen
+    worktree's), ``nuisance_steps`` (1 where the posterior took the nuisances' Gauss-Newton
+    step) and ``nuisance_check_failed`` (the set-up check's points whose simulation
+    failed), both from the case's ``posterior/posterior_settings.json``. A case whose
+    chain has not finished (no ``result.json``) is not copied. Yields a line per case."""
+    to.mkdir(parents=True, exist_ok=True)
+    for path in sorted(runs.glob("case_*/result.json")):
+        r = json.loads(path.read_text())
+        lib = r.get("library") or library
+        if not lib:
+            raise ValueError(f"{path}: no 'library' in the record; give the library it ran on")
+        r["library"] = lib
+        r.update(_nuisance_record(path.parent))
+        (to / f"{r['case_id']}.json").write_text(json.dumps(r, indent=1))
+        yield f"{r['case_id']}: copied (library {lib})"
+
+
+def _nuisance_record(res_dir: pathlib.Path) -> dict:
+    """``nuisance_steps`` and ``nuisance_check_failed`` of a case's posterior, from its
+    ``posterior/posterior_settings.json`` ({} where there is none)."""
+    settings = res_dir / "posterior" / "posterior_settings.json"
+    if not settings.exists():
+        return {}
+    problem = json.loads(settings.read_text())["problem"]
+    check = problem.get("ls_info", {}).get("nuisance_check") or {}
+    return {
+        "nuisance_steps": int(problem.get("nuisance_steps", 0)),
+        "nuisance_check_failed": list(check.get("failed", [])),
+    }
+
+
+def _pit_cell(before: dict | None, now: dict) -> str:
+    """``0.950 → 0.964 (in → **out**)``: the PIT and the 90 % interval's verdict, earlier
+    record → this one (only this one's where there is no earlier record)."""
+
+    def word(t: dict) -> str:
+        return "in" if t["in_90"] else "**out**"
+
+    if before is None:
+        return f"{now['pit']:.3f} ({word(now)})"
+    return f"{before['pit']:.3f} → {now['pit']:.3f} ({word(before)} → {word(now)})"
+
+
+def compare(earlier: pathlib.Path, now: pathlib.Path) -> str:
+    """A Markdown table of the records in ``now`` (``case_*.json``) beside the records of
+    the same cases in ``earlier``: per case its hidden effects, whether the posterior took
+    the nuisances' step, the chain's length, and per target the PIT and whether the 90 %
+    interval contains the truth, earlier → now. Below it, the 90 % hits of each target in
+    ``now``, and with the earlier records of the cases not in ``now`` (a projection of the
+    whole set, not a measurement on one library)."""
+    old = {r["case_id"]: r for r in _load([earlier])}
+    new = sorted(_load([now]), key=lambda r: r["case_id"])
+    head = ["case", "hidden", "step", "chain steps", *TARGETS]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * 3 + "---:|" + "---|" * len(TARGETS)]
+    for r in new:
+        if not r.get("targets"):
+            continue
+        before = old.get(r["case_id"], {}).get("targets")
+        cells = [_pit_cell(before[k] if before else None, r["targets"][k]) for k in TARGETS]
+        lines.append(
+            f"| {r['case_id']} | {'+'.join(r['hidden_effects']) or '-'} | "
+            f"{r.get('nuisance_steps', '?')} | {r.get('posterior_steps', '?')} | "
+            + " | ".join(cells) + " |"
+        )  # fmt: skip
+    done = {r["case_id"]: r for r in new if r.get("targets")}
+    merged = {**{c: r for c, r in old.items() if r.get("targets")}, **done}
+    for label, rows in (("these records", done), ("with the earlier ones for the rest", merged)):
+        hits = {k: sum(r["targets"][k]["in_90"] for r in rows.values()) for k in TARGETS}
+        hits50 = {k: sum(r["targets"][k]["in_50"] for r in rows.values()) for k in TARGETS}
+        lines.append(
+            f"\n90 % intervals containing the truth, {label} ({len(rows)} cases): "
+            + ", ".join(f"{k} {hits[k]}" for k in TARGETS)
+            + "; 50 %: "
+            + ", ".join(f"{k} {hits50[k]}" for k in TARGETS)
+            + "."
+        )
+    return "\n".join(lines) + "\n"
 
 
 def _library() -> str:
@@ -545,6 +639,13 @@ def main(argv=None) -> int:
     f.add_argument("records", help="a folder of committed case_*.json")
     f.add_argument("--seed", type=int, required=True, help="the set the records are of")
     f.add_argument("--out", default="runs/coverage_refit")
+    c = sub.add_parser("collect", help="copy a run folder's finished cases as records")
+    c.add_argument("runs", help="a run folder (case_*/result.json)")
+    c.add_argument("--to", required=True, help="the folder of committed records")
+    c.add_argument("--library", help="the git tree of jaxlift/ the run imported")
+    m = sub.add_parser("compare", help="records beside earlier records of the same cases")
+    m.add_argument("earlier", help="a folder of earlier records (case_*.json)")
+    m.add_argument("now", help="a folder of records (case_*.json)")
     q = sub.add_parser("report")
     q.add_argument(
         "--out",
@@ -556,6 +657,13 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.cmd == "report":
         print(report([pathlib.Path(o) for o in args.out], pathlib.Path(args.to)))
+        return 0
+    if args.cmd == "collect":
+        for line in collect(pathlib.Path(args.runs), pathlib.Path(args.to), args.library):
+            print(line, flush=True)
+        return 0
+    if args.cmd == "compare":
+        print(compare(pathlib.Path(args.earlier), pathlib.Path(args.now)), end="")
         return 0
     if args.cmd == "refit":
         for line in refit(pathlib.Path(args.records), args.seed, pathlib.Path(args.out)):

@@ -236,6 +236,55 @@ def test_refit_adds_the_fit_only_where_it_is_the_recorded_one(coverage, tmp_path
     assert cells[3] == "3.00" and cells[5] == "+3.00" and cells[6] == "1.11"
 
 
+def test_collect_copies_finished_cases_with_their_library_and_step(coverage, tmp_path):
+    """``collect`` copies each finished case of a run folder as a committed record with
+    the library and the posterior's nuisance step and failed check points added; an
+    unfinished case (no result.json) is not copied; a record with no library and none
+    given is an error that names the file."""
+    runs, to = tmp_path / "runs", tmp_path / "cases"
+    _case(runs, "case_000", [0.5, 0.5, 0.5, 0.5], seed=18)
+    _case(runs, "case_001", [0.5, 0.5, 0.5, 0.5], seed=18)
+    (runs / "case_002" / "posterior").mkdir(parents=True)  # a chain still running
+    settings = {"problem": {"nuisance_steps": 1,
+                            "ls_info": {"nuisance_check": {"failed": ["d +1 sd"]}}}}  # fmt: skip
+    (runs / "case_001" / "posterior").mkdir()
+    (runs / "case_001" / "posterior" / "posterior_settings.json").write_text(json.dumps(settings))
+    with pytest.raises(ValueError, match="case_000/result.json"):
+        list(coverage.collect(runs, to))
+    lines = list(coverage.collect(runs, to, library="abc1234"))
+    assert [ln.split(":")[0] for ln in lines] == ["case_000", "case_001"]
+    assert sorted(p.name for p in to.iterdir()) == ["case_000.json", "case_001.json"]
+    r0 = json.loads((to / "case_000.json").read_text())
+    r1 = json.loads((to / "case_001.json").read_text())
+    assert r0["library"] == "abc1234" and "nuisance_steps" not in r0
+    assert r1["nuisance_steps"] == 1 and r1["nuisance_check_failed"] == ["d +1 sd"]
+    assert r1["targets"] == json.loads((runs / "case_001" / "result.json").read_text())["targets"]
+
+
+def test_compare_sets_each_case_beside_its_earlier_record(coverage, tmp_path):
+    """``compare``: a row per case of the new records, PIT and 90 % verdict earlier ->
+    now; the counts over the new records alone and merged with the earlier records of
+    the cases not re-run."""
+    earlier, now = tmp_path / "earlier", tmp_path / "now"
+    _case(earlier, "case_000", [0.97, 0.5, 0.5, 0.5], committed=True)
+    _case(earlier, "case_001", [0.5, 0.01, 0.5, 0.5], committed=True)
+    _case(earlier, "case_002", [0.5, 0.5, 0.99, 0.3], committed=True)
+    _case(now, "case_000", [0.94, 0.5, 0.5, 0.96], committed=True)
+    _case(now, "case_003", [0.5, 0.5, 0.5, 0.5], committed=True)  # no earlier record
+    text = coverage.compare(earlier, now)
+    row0 = next(ln for ln in text.splitlines() if ln.startswith("| case_000 |"))
+    cells = [c.strip() for c in row0.split("|")[1:-1]]
+    assert cells[4] == "0.970 → 0.940 (**out** → in)"
+    assert cells[7] == "0.500 → 0.960 (in → **out**)"
+    row3 = next(ln for ln in text.splitlines() if ln.startswith("| case_003 |"))
+    assert row3.split("|")[5].strip() == "0.500 (in)"
+    assert "case_001" not in text.split("\n\n")[0] and "case_002" not in text.split("\n\n")[0]
+    # now alone: 2 cases, every target in but the product of case_000; merged with
+    # case_001 (cf_con out) and case_002 (d out): 4 cases
+    assert "these records (2 cases): beta 2, cf_con 2, d 2, cf_out*cf_in^5 1;" in text
+    assert "for the rest (4 cases): beta 4, cf_con 3, d 3, cf_out*cf_in^5 3;" in text
+
+
 # ~145 s (two runs of a study script): out of CI's time since 2026-12-04; the study
 # scripts' shared pieces stay checked above. Run with -m extended.
 @pytest.mark.extended
