@@ -96,7 +96,7 @@ from .posterior.moves import (
 from .posterior.predictive import posterior_draws
 from .posterior.priors import DEFAULT_PRIORS, LogNormal, Uniform
 from .posterior.problem import PosteriorProblem, prepare_posterior
-from .posterior.sampler import SamplerRun, posterior_samples, sample_posterior
+from .posterior.sampler import ChainFileLocked, SamplerRun, posterior_samples, sample_posterior
 from .report.tuning import robustness_report
 from .workflows.diagnose import run_diagnose
 from .workflows.fit import model_vs_measurement, run_fit
@@ -189,6 +189,7 @@ __all__ = [
     "screen_effects",
     "AbstractEffect",
     "AbstractStatelessEffect",
+    "ChainFileLocked",
     "EntrainedAir",
     "HoseCompliance",
     "InputDelay",

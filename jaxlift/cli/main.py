@@ -426,7 +426,13 @@ def main(argv: list[str] | None = None) -> int:
         rc = args.func(args)
         write_provenance(args, argv, rc)
         return rc
-    except (jl.LogError, jl.ParameterError, jl.SimulationError, ValueError) as err:
+    except (
+        jl.LogError,
+        jl.ParameterError,
+        jl.SimulationError,
+        jl.ChainFileLocked,
+        ValueError,
+    ) as err:
         print(f"jaxlift {args.command}: error: {err}", file=sys.stderr)
         return 2
 

@@ -20,6 +20,43 @@ from .likelihood import EmceeLogProb, make_log_prob
 from .moves import MOVES, AbstractMove, LaplaceMove
 from .problem import PosteriorProblem
 
+# ------------------------------------------------------------------ the chain file
+#: How long an access to the chain file waits for another process's lock on it (HDF5
+#: locks a file while it is open: a reader such as h5py, ArviZ or a second ``jaxlift
+#: posterior`` that opens the chain while it runs) before giving up [s].
+LOCK_WAIT_S = 120.0
+
+
+class ChainFileLocked(RuntimeError):
+    """The chain's HDF5 file stayed locked by another process for :data:`LOCK_WAIT_S`;
+    the steps written before are kept, and the same call resumes from them."""
+
+
+class _ChainBackend(emcee.backends.HDFBackend):
+    """emcee's HDF5 backend, patient with locks: emcee opens the file for every step it
+    stores, and HDF5 refuses (``BlockingIOError``, errno 11) while another process has it
+    open; a chain must not die of someone looking at it (a coverage run's chain did, of
+    a script reading its progress). Waits with growing pauses up to
+    :data:`LOCK_WAIT_S`, then raises :class:`ChainFileLocked` naming the file."""
+
+    def open(self, mode="r"):
+        waited, pause = 0.0, 0.05
+        while True:
+            try:
+                return super().open(mode)
+            except BlockingIOError as exc:
+                if waited >= LOCK_WAIT_S:
+                    raise ChainFileLocked(
+                        f"{self.filename}: the chain file stayed locked by another process "
+                        f"for {waited:.0f} s (a program reading it while the chain runs: "
+                        "open it with h5py.File(path, 'r', locking=False), or wait); the "
+                        "steps stored so far are kept, and running the same command again "
+                        "resumes from them"
+                    ) from exc
+                time.sleep(pause)
+                waited += pause
+                pause = min(2 * pause, 2.0)
+
 
 # ------------------------------------------------------------------ sampling
 @dataclasses.dataclass
@@ -179,7 +216,7 @@ def sample_posterior(
         raise TypeError(f"move must be a jaxlift move ({known}), not {move!r}")
     f = log_prob or make_log_prob(problem, batch=batch, devices=devices)
     lp_fn = EmceeLogProb(f, n_walkers // 2)
-    backend = emcee.backends.HDFBackend(os.fspath(chain_path), name="mcmc")
+    backend = _ChainBackend(os.fspath(chain_path), name="mcmc")
     start = backend.iteration if os.path.exists(chain_path) and backend.initialized else 0
     if start > 0:
         with backend.open() as fh:  # chains from before the choice: the stretch move
@@ -277,7 +314,7 @@ def _check(backend, it, tau_factor, tau_prev):
 def chain_status(chain_path: str | os.PathLike, tau_factor: float = 50.0) -> dict:
     """Steps, tau and convergence of a stored chain (read-only)."""
 
-    b = emcee.backends.HDFBackend(os.fspath(chain_path), name="mcmc", read_only=True)
+    b = _ChainBackend(os.fspath(chain_path), name="mcmc", read_only=True)
     it = b.iteration
     tau = np.asarray(b.get_autocorr_time(tol=0), dtype=float)
     return {"iteration": it, "tau": tau, "enough": bool(it > tau_factor * np.max(tau))}
@@ -297,7 +334,7 @@ def posterior_samples(
     ``thin_factor`` x min tau steps. Returns ``({name: (walkers, draws)}, log_prob
     (walkers, draws), {"burn": .., "thin": ..})``."""
 
-    b = emcee.backends.HDFBackend(os.fspath(chain_path), name="mcmc", read_only=True)
+    b = _ChainBackend(os.fspath(chain_path), name="mcmc", read_only=True)
     tau = np.asarray(tau, dtype=float)
     it = b.iteration
     burn = int(min(math.ceil(burn_factor * np.nanmax(tau)), it // 2))
