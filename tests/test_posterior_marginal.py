@@ -459,7 +459,7 @@ def test_where_the_linear_nuisance_map_fails_one_gauss_newton_step_restores_it(t
         # the iterates after the first step scatter by the integration noise: their
         # median is the profile. Measured (jax 0.12.1): the profile 0.19 and 0.96, the map
         # 14.3 and 21.7, the one step 0.21 and 1.72 (a second step would reach 0.96 on
-        # the + side; the 0.16 and 0.93 of the first measurement were on other numerics)
+        # the + side; the 0.16 and 0.93 of the first measurement were on another machine)
         profile = float(np.median(falls[2:]))
         assert profile < 1.5, falls
         excess_map = check["linear"]["d"][j] - profile

@@ -721,7 +721,7 @@ def _laplace(
 #: docs/statistics.md): along the damping ``d`` the falls were 13.8 and 21.4 on the
 #: linear map, 0.16 and 0.93 after the step and 0.18 and 0.95 with the nuisances
 #: re-optimised; the sampled interval of ``d`` was 0.28 of the fit's standard error.
-#: On a later install (jax 0.12.1) the same code gives 14.3 and 21.7, 0.21 and 1.72,
+#: On a later machine (jax 0.12.1, AMD EPYC) the same code gives 14.3 and 21.7, 0.21 and 1.72,
 #: 0.19 and 0.96: one step can leave up to this threshold behind.
 NUISANCE_STEP_GAIN = 1.0
 
